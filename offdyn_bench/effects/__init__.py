@@ -1,0 +1,45 @@
+"""One vocabulary of dynamics effects: model effects and channel effects."""
+
+from offdyn_bench.effects.base import EFFECT_KINDS, Effect, effects_from_dicts, effects_to_dicts
+from offdyn_bench.effects.channel import (
+    ActionBias,
+    ActionDeadzone,
+    ActionDelay,
+    ActionGain,
+    ActionNoise,
+    ActionSaturation,
+    ChannelEffect,
+    ChannelEffects,
+    ObsBias,
+    ObsDelay,
+    ObsNoise,
+)
+from offdyn_bench.effects.model import (
+    Armature,
+    ContactSolimp,
+    ContactSolref,
+    Damping,
+    Friction,
+    FrictionCone,
+    FrictionLoss,
+    Gear,
+    Gravity,
+    Integrator,
+    JointRange,
+    LimbSize,
+    Mass,
+    ModelEffect,
+    NoSlip,
+    apply_model_effects,
+    compile_model,
+    split_effects,
+)
+
+__all__ = [
+    "EFFECT_KINDS", "Effect", "ModelEffect", "ChannelEffect", "ChannelEffects",
+    "effects_from_dicts", "effects_to_dicts", "compile_model", "apply_model_effects", "split_effects",
+    "Gravity", "Friction", "Mass", "Damping", "FrictionLoss", "Armature", "Gear", "JointRange",
+    "LimbSize", "ContactSolref", "ContactSolimp", "FrictionCone", "Integrator", "NoSlip",
+    "ActionNoise", "ActionDeadzone", "ActionBias", "ActionGain", "ActionSaturation", "ActionDelay",
+    "ObsNoise", "ObsBias", "ObsDelay",
+]

@@ -1,0 +1,316 @@
+"""Channel effects: what sits between the agent and the physics.
+
+Action effects transform the command before it reaches the actuators, observation effects the
+observation before it reaches the agent. Each effect has a pure, vectorized ``transform`` on
+arrays (gap diagnosis uses it on whole datasets) and, for delays, a buffer. At run time the
+:class:`ChannelEffects` wrapper applies them in list order, seeded from the env's RNG, and
+appends its buffers to the ``state`` vectors in ``info`` so a simulator can be restarted exactly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any, ClassVar, Literal
+
+import gymnasium
+import mujoco
+import numpy as np
+
+from offdyn_bench.effects.base import Effect
+from offdyn_bench.effects.model import actuator_ids
+from offdyn_bench.errors import OffdynError
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ChannelEffect(Effect):
+    """An effect on the action or observation channel.
+
+    ``transform(x, rng)`` maps a batch ``x[..., dim]`` of commands (or observations) to what
+    the physics (or agent) receives; ``mask`` selects the targeted dimensions.
+    """
+
+    family: ClassVar[Literal["channel"]] = "channel"
+    channel: ClassVar[Literal["action", "observation"]]
+    delay_steps: ClassVar[bool] = False
+
+    def transform(self, x: np.ndarray, mask: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+        raise NotImplementedError
+
+    def dimension_mask(self, size: int, model: mujoco.MjModel | None = None) -> np.ndarray:
+        """Boolean mask over the channel's dimensions that this effect targets."""
+        mask = np.zeros(size, dtype=bool)
+        if self.target is None:
+            mask[:] = True
+        elif self.channel == "action":
+            if model is None:
+                raise OffdynError(f"effect {self.kind!r}: a model is needed to resolve actuator {self.target!r}")
+            mask[actuator_ids(model, str(self.target))] = True
+        else:
+            index = int(self.target)  # type: ignore[arg-type]
+            if index >= size:
+                raise OffdynError(f"effect {self.kind!r}: observation index {index} is out of range; "
+                                  f"the observation has {size} dimensions (0..{size - 1})")
+            mask[index] = True
+        return mask
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _Noise(ChannelEffect):
+    value_field: ClassVar[str] = "std"
+    std: float
+
+    def validate(self) -> None:
+        self._require_finite("std", low=0.0)
+
+    def transform(self, x, mask, rng):
+        if rng is None:
+            raise OffdynError(f"effect {self.kind!r} is stochastic and needs a random generator")
+        return x + rng.normal(0.0, self.std, size=x.shape) * mask
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _Bias(ChannelEffect):
+    value_field: ClassVar[str] = "value"
+    value: float
+
+    def validate(self) -> None:
+        self._require_finite("value")
+
+    def transform(self, x, mask, rng):
+        return x + self.value * mask
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class _Delay(ChannelEffect):
+    value_field: ClassVar[str] = "steps"
+    delay_steps: ClassVar[bool] = True
+    steps: int
+
+    def validate(self) -> None:
+        self._require_steps("steps")
+
+    def transform(self, x, mask, rng):
+        """Delay a time series ``x[t, dim]`` of one episode (first axis is time)."""
+        out = np.array(x, dtype=float, copy=True)
+        if self.steps == 0 or len(x) == 0:
+            return out
+        k = min(self.steps, len(x))
+        shifted = np.empty_like(out)
+        shifted[k:] = x[: len(x) - k]
+        shifted[:k] = self.initial_fill(np.asarray(x[0], dtype=float))
+        return np.where(mask, shifted, out)
+
+    def initial_fill(self, first: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ActionNoise(_Noise):
+    """Add Gaussian noise ``N(0, std^2)`` to the command: the joint-noise shift."""
+
+    kind: ClassVar[str] = "action_noise"
+    channel: ClassVar = "action"
+    target_type: ClassVar = "actuator"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ActionBias(_Bias):
+    """Add a constant offset to the command (a miscalibrated motor driver)."""
+
+    kind: ClassVar[str] = "action_bias"
+    channel: ClassVar = "action"
+    target_type: ClassVar = "actuator"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ActionGain(ChannelEffect):
+    """Multiply the command by ``scale`` (negative flips the motor's direction)."""
+
+    kind: ClassVar[str] = "action_gain"
+    channel: ClassVar = "action"
+    target_type: ClassVar = "actuator"
+    value_field: ClassVar[str] = "scale"
+    scale: float
+
+    def validate(self) -> None:
+        self._require_finite("scale")
+
+    def transform(self, x, mask, rng):
+        return np.where(mask, x * self.scale, x)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ActionDeadzone(ChannelEffect):
+    """Commands with ``|a| <= threshold`` produce zero; larger ones pass unchanged."""
+
+    kind: ClassVar[str] = "action_deadzone"
+    channel: ClassVar = "action"
+    target_type: ClassVar = "actuator"
+    value_field: ClassVar[str] = "threshold"
+    threshold: float
+
+    def validate(self) -> None:
+        self._require_finite("threshold", low=0.0)
+
+    def transform(self, x, mask, rng):
+        return np.where(mask & (np.abs(x) <= self.threshold), 0.0, x)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ActionSaturation(ChannelEffect):
+    """Clip the command to ``[-limit, limit]`` (a driver that cannot deliver full torque)."""
+
+    kind: ClassVar[str] = "action_saturation"
+    channel: ClassVar = "action"
+    target_type: ClassVar = "actuator"
+    value_field: ClassVar[str] = "limit"
+    limit: float
+
+    def validate(self) -> None:
+        self._require_finite("limit", low=0.0, low_open=True)
+
+    def transform(self, x, mask, rng):
+        return np.where(mask, np.clip(x, -self.limit, self.limit), x)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ActionDelay(_Delay):
+    """Apply each command ``steps`` control steps late; before that the actuators get zero."""
+
+    kind: ClassVar[str] = "action_delay"
+    channel: ClassVar = "action"
+    target_type: ClassVar = "actuator"
+
+    def initial_fill(self, first: np.ndarray) -> np.ndarray:
+        return np.zeros_like(first)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ObsNoise(_Noise):
+    """Add Gaussian sensor noise ``N(0, std^2)`` to the observation."""
+
+    kind: ClassVar[str] = "obs_noise"
+    channel: ClassVar = "observation"
+    target_type: ClassVar = "observation"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ObsBias(_Bias):
+    """Add a constant offset to the observation (a miscalibrated sensor)."""
+
+    kind: ClassVar[str] = "obs_bias"
+    channel: ClassVar = "observation"
+    target_type: ClassVar = "observation"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ObsDelay(_Delay):
+    """Return the observation from ``steps`` control steps ago (the first one until then)."""
+
+    kind: ClassVar[str] = "obs_delay"
+    channel: ClassVar = "observation"
+    target_type: ClassVar = "observation"
+
+    def initial_fill(self, first: np.ndarray) -> np.ndarray:
+        return first
+
+
+# --- run time -------------------------------------------------------------------------------
+
+class _Stage:
+    """One effect at run time: its mask and, for a delay, a FIFO of ``steps`` past values."""
+
+    def __init__(self, effect: ChannelEffect, mask: np.ndarray) -> None:
+        self.effect = effect
+        self.mask = mask
+        self.size = mask.size
+        self.buffer = np.zeros((effect.steps if effect.delay_steps else 0, mask.size))  # type: ignore[attr-defined]
+
+    def reset(self, first: np.ndarray) -> None:
+        if len(self.buffer):
+            self.buffer[:] = self.effect.initial_fill(first)  # type: ignore[attr-defined]
+
+    def __call__(self, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        if not self.effect.delay_steps:
+            return self.effect.transform(x, self.mask, rng)
+        if not len(self.buffer):
+            return x
+        out = np.where(self.mask, self.buffer[0], x)
+        self.buffer[:-1] = self.buffer[1:]
+        self.buffer[-1] = x
+        return out
+
+
+class ChannelEffects(gymnasium.Wrapper):
+    """Apply channel effects to an env's actions and observations.
+
+    Noise is drawn from a generator spawned from the env's own RNG at every ``reset``, so the
+    same seed gives the same noise. ``info["state"]`` (and ``info["prev_state"]`` on ``step``)
+    gain the delay buffers at their end; :meth:`set_full_state` takes such a vector back.
+    """
+
+    def __init__(self, env: gymnasium.Env, effects: Sequence[ChannelEffect]) -> None:
+        super().__init__(env)
+        self.effects = tuple(effects)
+        model = getattr(env.unwrapped, "model", None)
+        action_size = int(np.prod(env.action_space.shape))
+        obs_size = int(np.prod(env.observation_space.shape))
+        self._action_stages = [_Stage(e, e.dimension_mask(action_size, model))
+                               for e in self.effects if e.channel == "action"]
+        self._obs_stages = [_Stage(e, e.dimension_mask(obs_size, None))
+                            for e in self.effects if e.channel == "observation"]
+        self._stages = self._action_stages + self._obs_stages
+        self._rng = np.random.default_rng(0)
+        self._low = np.asarray(env.observation_space.low)
+
+    @property
+    def channel_state_size(self) -> int:
+        return sum(stage.buffer.size for stage in self._stages)
+
+    def channel_state(self) -> np.ndarray:
+        if not self._stages:
+            return np.zeros(0)
+        return np.concatenate([stage.buffer.ravel() for stage in self._stages])
+
+    def _observe(self, obs: np.ndarray) -> np.ndarray:
+        for stage in self._obs_stages:
+            obs = stage(obs, self._rng)
+        return obs.astype(self.observation_space.dtype, copy=False)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._rng = np.random.default_rng(int(self.env.unwrapped.np_random.integers(2**63)))
+        zero_action = np.zeros(self.action_space.shape)
+        for stage in self._action_stages:
+            stage.reset(zero_action)
+        for stage in self._obs_stages:
+            stage.reset(np.asarray(obs, dtype=float))
+        obs = self._observe(np.asarray(obs, dtype=float))
+        if "state" in info:
+            info["state"] = np.concatenate([info["state"], self.channel_state()])
+        return obs, info
+
+    def step(self, action):
+        prev_channel = self.channel_state()
+        command = np.asarray(action, dtype=float)
+        for stage in self._action_stages:
+            command = stage(command, self._rng)
+        obs, reward, terminated, truncated, info = self.env.step(command)
+        obs = self._observe(np.asarray(obs, dtype=float))
+        info["applied_action"] = command
+        if "state" in info:
+            info["prev_state"] = np.concatenate([info["prev_state"], prev_channel])
+            info["state"] = np.concatenate([info["state"], self.channel_state()])
+        return obs, reward, terminated, truncated, info
+
+    def set_full_state(self, state: np.ndarray) -> None:
+        """Restore physics and delay buffers from a ``state`` vector taken from ``info``."""
+        state = np.asarray(state, dtype=float)
+        n = self.channel_state_size
+        inner = state[: state.size - n]
+        self.env.get_wrapper_attr("set_full_state")(inner)
+        offset = inner.size
+        for stage in self._stages:
+            stage.buffer[:] = state[offset: offset + stage.buffer.size].reshape(stage.buffer.shape)
+            offset += stage.buffer.size

@@ -1,0 +1,85 @@
+"""The robots of the suite: which Gymnasium v5 env each wraps and which of its parts shift.
+
+Data, not code: a robot names its environment class and the joints and bodies that the
+kinematic and morphology shift families act on. The task grid is built from this table.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from collections.abc import Mapping
+from types import MappingProxyType
+
+from offdyn_bench.errors import UnknownNameError
+
+
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """A robot: its Gymnasium environment class and its shiftable parts.
+
+    ``kinematic_joints`` maps the part name used in task ids to a MuJoCo joint name;
+    ``morph_parts`` maps it to a MuJoCo body name.
+    """
+
+    name: str
+    env_class: str
+    max_episode_steps: int
+    kinematic_joints: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    morph_parts: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    reference_env_id: str | None = None
+
+    def load_env_class(self) -> type:
+        module, _, attr = self.env_class.partition(":")
+        return getattr(importlib.import_module(module), attr)
+
+
+_ROBOT_LIST = [
+    Robot(
+        name="Ant",
+        env_class="gymnasium.envs.mujoco.ant_v5:AntEnv",
+        max_episode_steps=1000,
+        kinematic_joints={"hip1": "hip_1", "ankle1": "ankle_1"},
+        morph_parts={"leg1": "aux_1", "leg3": "aux_3"},
+        reference_env_id="Ant-v5",
+    ),
+    Robot(
+        name="HalfCheetah",
+        env_class="gymnasium.envs.mujoco.half_cheetah_v5:HalfCheetahEnv",
+        max_episode_steps=1000,
+        kinematic_joints={"bthigh": "bthigh", "fthigh": "fthigh"},
+        morph_parts={"bthigh": "bthigh", "fthigh": "fthigh"},
+        reference_env_id="HalfCheetah-v5",
+    ),
+    Robot(
+        name="Hopper",
+        env_class="gymnasium.envs.mujoco.hopper_v5:HopperEnv",
+        max_episode_steps=1000,
+        kinematic_joints={"thigh": "thigh_joint", "foot": "foot_joint"},
+        morph_parts={"thigh": "thigh", "leg": "leg"},
+        reference_env_id="Hopper-v5",
+    ),
+    Robot(
+        name="Walker2d",
+        env_class="gymnasium.envs.mujoco.walker2d_v5:Walker2dEnv",
+        max_episode_steps=1000,
+        kinematic_joints={"thigh": "thigh_joint", "foot": "foot_joint"},
+        morph_parts={"thigh": "thigh", "leg": "leg"},
+        reference_env_id="Walker2d-v5",
+    ),
+    # A fast robot for learning tests of the baselines; not part of the benchmark grid.
+    Robot(
+        name="InvertedPendulum",
+        env_class="gymnasium.envs.mujoco.inverted_pendulum_v5:InvertedPendulumEnv",
+        max_episode_steps=1000,
+        reference_env_id="InvertedPendulum-v5",
+    ),
+]
+
+ROBOTS: Mapping[str, Robot] = MappingProxyType({r.name: r for r in _ROBOT_LIST})
+
+
+def get_robot(name: str) -> Robot:
+    if name not in ROBOTS:
+        raise UnknownNameError("robot", name, ROBOTS)
+    return ROBOTS[name]

@@ -1,0 +1,200 @@
+"""Source/target task pairs as data, and the benchmark grid built from a few comprehensions.
+
+A :class:`TaskPair` is a robot, the effects of its source (the simulator a policy trains in) and
+of its target (the "real" system), and a version. Each pair registers two Gymnasium ids::
+
+    offdyn/<Robot>-<shift>[-<part>]-<level>-{source,target}-v<version>
+
+and is known to the CLI by its lower-case name, e.g. ``hopper-gravity-0.5``. Released versions
+are frozen: a change of dynamics is a new version.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable, Mapping
+from types import MappingProxyType
+from typing import Any, Literal
+
+import gymnasium
+
+from offdyn_bench.effects import (
+    ActionNoise,
+    Effect,
+    Friction,
+    Gravity,
+    JointRange,
+    LimbSize,
+    effects_from_dicts,
+)
+from offdyn_bench.errors import OffdynError, UnknownNameError
+from offdyn_bench.robots import ROBOTS, get_robot
+
+Side = Literal["source", "target"]
+SIDES: tuple[Side, ...] = ("source", "target")
+ENTRY_POINT = "offdyn_bench.envs:make_robot_env"
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskPair:
+    """A source/target pair. ``shift``, ``part`` and ``level`` only name it; the effects define it."""
+
+    robot: str
+    shift: str
+    level: str
+    source_effects: tuple[Effect, ...]
+    target_effects: tuple[Effect, ...]
+    part: str | None = None
+    version: int = 0
+    description: str = ""
+
+    @property
+    def pair_id(self) -> str:
+        """``Hopper-gravity-0.5`` or ``Walker2d-kinematic-foot-hard``."""
+        parts = [self.robot, self.shift] + ([self.part] if self.part else []) + [self.level]
+        return "-".join(parts)
+
+    @property
+    def name(self) -> str:
+        """The CLI name: ``hopper-gravity-0.5``."""
+        return self.pair_id.lower()
+
+    def env_id(self, side: Side) -> str:
+        _check_side(side)
+        return f"offdyn/{self.pair_id}-{side}-v{self.version}"
+
+    def effects(self, side: Side) -> tuple[Effect, ...]:
+        _check_side(side)
+        return self.source_effects if side == "source" else self.target_effects
+
+    def env_kwargs(self, side: Side) -> dict[str, Any]:
+        return {"robot": self.robot, "effects": [e.to_dict() for e in self.effects(side)]}
+
+    def make(self, side: Side, **kwargs: Any) -> gymnasium.Env:
+        """``gymnasium.make`` of this pair's ``side`` id (registered on import)."""
+        return gymnasium.make(self.env_id(side), **kwargs)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "robot": self.robot,
+            "shift": self.shift,
+            "part": self.part,
+            "level": self.level,
+            "version": self.version,
+            "source_env_id": self.env_id("source"),
+            "target_env_id": self.env_id("target"),
+            "source_effects": [e.to_dict() for e in self.source_effects],
+            "target_effects": [e.to_dict() for e in self.target_effects],
+            "description": self.description,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> TaskPair:
+        return cls(robot=data["robot"], shift=data["shift"], part=data.get("part"), level=data["level"],
+                   version=int(data.get("version", 0)), description=data.get("description", ""),
+                   source_effects=effects_from_dicts(data["source_effects"]),
+                   target_effects=effects_from_dicts(data["target_effects"]))
+
+
+def _check_side(side: str) -> None:
+    if side not in SIDES:
+        raise UnknownNameError("side", side, SIDES)
+
+
+# --- the grid -------------------------------------------------------------------------------
+
+LOCOMOTION_ROBOTS = ("Ant", "HalfCheetah", "Hopper", "Walker2d")
+SCALE_LEVELS = (0.1, 0.5, 2.0, 5.0)
+DIFFICULTY_SCALES = {"easy": 0.8, "medium": 0.5, "hard": 0.2}
+JOINT_NOISE_STDS = (0.1, 0.5, 1.0)
+
+
+def _level(x: float) -> str:
+    return f"{x:g}" if x != int(x) else f"{x:.1f}"
+
+
+def _shifted(robot: str, shift: str, level: str, target: Iterable[Effect], part: str | None = None,
+             description: str = "") -> TaskPair:
+    """The usual pair: a nominal source simulator and a shifted target."""
+    return TaskPair(robot=robot, shift=shift, part=part, level=level, source_effects=(),
+                    target_effects=tuple(target), description=description)
+
+
+def _h2o(robot: str, shift: str, level: str, source: Iterable[Effect], description: str) -> TaskPair:
+    """The H2O paper's setting: the *simulator* carries the shift, the target is nominal."""
+    return TaskPair(robot=robot, shift=shift, level=level, source_effects=tuple(source),
+                    target_effects=(), description=description)
+
+
+def _grid() -> list[TaskPair]:
+    pairs: list[TaskPair] = []
+    for robot in LOCOMOTION_ROBOTS:
+        r = ROBOTS[robot]
+        pairs += [_shifted(robot, "gravity", _level(s), [Gravity(scale=s)],
+                           description=f"target gravity x{s:g}") for s in SCALE_LEVELS]
+        pairs += [_shifted(robot, "friction", _level(s), [Friction(scale=s)],
+                           description=f"target friction x{s:g} on every geom") for s in SCALE_LEVELS]
+        pairs += [_shifted(robot, "kinematic", level, [JointRange(target=joint, scale=s)], part=part,
+                           description=f"target {joint} range x{s:g}")
+                  for part, joint in r.kinematic_joints.items() for level, s in DIFFICULTY_SCALES.items()]
+        pairs += [_shifted(robot, "morph", level, [LimbSize(target=body, scale=s)], part=part,
+                           description=f"target {body} limb size x{s:g}")
+                  for part, body in r.morph_parts.items() for level, s in DIFFICULTY_SCALES.items()]
+        pairs += [_shifted(robot, "joint-noise", _level(std), [ActionNoise(std=std)],
+                           description=f"target action noise N(0, {std:g}^2) on every actuator")
+                  for std in JOINT_NOISE_STDS]
+    for robot in ("HalfCheetah", "Walker2d"):
+        pairs += [
+            _h2o(robot, "h2o-gravity", "2.0", [Gravity(scale=2.0)], "H2O setting: simulator gravity x2"),
+            _h2o(robot, "h2o-friction", "0.3", [Friction(scale=0.3)], "H2O setting: simulator friction x0.3"),
+            _h2o(robot, "h2o-joint-noise", "1.0", [ActionNoise(std=1.0)],
+                 "H2O setting: simulator action noise N(0, 1)"),
+        ]
+    return pairs
+
+
+def _index(pairs: Iterable[TaskPair]) -> Mapping[str, TaskPair]:
+    out: dict[str, TaskPair] = {}
+    for pair in pairs:
+        get_robot(pair.robot)
+        if pair.name in out:
+            raise RuntimeError(f"task {pair.name!r} defined twice")
+        out[pair.name] = pair
+    return MappingProxyType(out)
+
+
+TASKS: Mapping[str, TaskPair] = _index(_grid())
+
+
+def get_task(name: str) -> TaskPair:
+    """The pair called ``name`` (``hopper-gravity-0.5``); also accepts its env ids."""
+    if isinstance(name, str) and name.startswith("offdyn/"):
+        for pair in TASKS.values():
+            if name in (pair.env_id("source"), pair.env_id("target")):
+                return pair
+        raise UnknownNameError("task env id", name, [p.env_id(s) for p in TASKS.values() for s in SIDES])
+    if name not in TASKS:
+        lowered = str(name).lower()
+        if lowered in TASKS:
+            return TASKS[lowered]
+        raise UnknownNameError("task", name, TASKS)
+    return TASKS[name]
+
+
+def register_tasks(pairs: Iterable[TaskPair] | None = None) -> list[str]:
+    """Register both ids of every pair with Gymnasium (string entry points). Idempotent."""
+    ids = []
+    for pair in TASKS.values() if pairs is None else pairs:
+        robot = get_robot(pair.robot)
+        for side in SIDES:
+            env_id = pair.env_id(side)
+            if env_id in gymnasium.registry:
+                existing = gymnasium.registry[env_id].kwargs
+                if existing != pair.env_kwargs(side):
+                    raise OffdynError(f"{env_id} is already registered with other dynamics")
+            else:
+                gymnasium.register(id=env_id, entry_point=ENTRY_POINT,
+                                   max_episode_steps=robot.max_episode_steps, kwargs=pair.env_kwargs(side))
+            ids.append(env_id)
+    return ids
