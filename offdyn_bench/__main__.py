@@ -1,0 +1,3 @@
+from offdyn_bench.cli import main
+
+main()

@@ -1,0 +1,18 @@
+"""The ``offdyn-bench`` command line."""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, add_completion=False,
+                  help="offdyn-bench: off-dynamics RL task pairs, datasets, baselines and gap diagnosis.")
+
+# --- sub-commands are attached below (one line each) ---
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()
