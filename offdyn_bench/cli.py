@@ -8,6 +8,9 @@ app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="offdyn-bench: off-dynamics RL task pairs, datasets, baselines and gap diagnosis.")
 
 # --- sub-commands are attached below (one line each) ---
+from offdyn_bench.task_commands import tasks_app  # noqa: E402
+
+app.add_typer(tasks_app, name="tasks")
 
 
 def main() -> None:

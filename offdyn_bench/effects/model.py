@@ -10,6 +10,7 @@ consistent.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Iterable, Sequence
 from typing import ClassVar, Literal
 
@@ -52,7 +53,7 @@ def geom_ids(model: mujoco.MjModel, target: str | None) -> np.ndarray:
 
 def actuated_joint_ids(model: mujoco.MjModel) -> np.ndarray:
     joints = [model.actuator_trnid[a, 0] for a in range(model.nu)
-              if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT]
+              if int(model.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT)]
     return np.array(sorted(set(int(j) for j in joints)), dtype=int)
 
 
@@ -83,7 +84,7 @@ def actuator_name(model: mujoco.MjModel, actuator: int) -> str:
     name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, actuator)
     if name:
         return name
-    if model.actuator_trntype[actuator] == mujoco.mjtTrn.mjTRN_JOINT:
+    if int(model.actuator_trntype[actuator]) == int(mujoco.mjtTrn.mjTRN_JOINT):
         return mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, model.actuator_trnid[actuator, 0]) or str(actuator)
     return str(actuator)
 
@@ -279,7 +280,7 @@ class JointRange(ModelEffect):
         j = int(joints[0])
         if not model.jnt_limited[j]:
             raise OffdynError(f"effect 'joint_range': joint {self.target!r} has no range to shrink")
-        if model.jnt_type[j] not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+        if int(model.jnt_type[j]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
             raise OffdynError(f"effect 'joint_range': joint {self.target!r} is not a hinge or slide joint")
         return joints
 
@@ -310,7 +311,7 @@ class LimbSize(ModelEffect):
     needs_spec: ClassVar[bool] = True
     fields: ClassVar = ("body_pos", "body_ipos", "body_iquat", "body_mass", "body_inertia",
                         "geom_size", "geom_pos", "geom_quat", "geom_aabb", "geom_rbound",
-                        "site_pos", "cam_pos")
+                        "site_pos", "site_size", "cam_pos", "body_sameframe", "geom_sameframe")
     scale: float
 
     def validate(self) -> None:
@@ -477,7 +478,7 @@ def _keep_body_masses_when_resized(spec: mujoco.MjSpec) -> None:
     if total <= 0:
         return
     spec.compiler.settotalmass = -1
-    raw = spec.compile()
+    raw = _compile(spec)
     factor = total / float(np.sum(raw.body_mass))
     for geom in spec.geoms:
         if np.isnan(geom.mass):
@@ -515,17 +516,24 @@ def apply_model_effects(model: mujoco.MjModel, effects: Sequence[ModelEffect]) -
         finalize_model(model)
 
 
+def _compile(spec: mujoco.MjSpec) -> mujoco.MjModel:
+    # HalfCheetah's MJCF uses the deprecated ``settotalmass``; the warning is Gymnasium's to fix.
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*settotalmass.*")
+        return spec.compile()
+
+
 def compile_model(xml_path: str, effects: Sequence[ModelEffect] = ()) -> mujoco.MjModel:
     """Compile the MJCF file at ``xml_path`` with model effects applied, in the given order."""
     spec = mujoco.MjSpec.from_file(xml_path)
     spec_effects = [e for e in effects if e.needs_spec]
     if spec_effects:
-        base = spec.compile()
+        base = _compile(spec)
         for effect in spec_effects:
             effect.check_target(base)
         _keep_body_masses_when_resized(spec)
         for effect in spec_effects:
             effect.apply_to_spec(spec)
-    model = spec.compile()
+    model = _compile(spec)
     apply_model_effects(model, [e for e in effects if not e.needs_spec])
     return model
