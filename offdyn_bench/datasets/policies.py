@@ -1,0 +1,194 @@
+"""Behaviour policies: anything that maps an observation to an action.
+
+A trained policy ships as two files side by side, never as a pickle:
+
+- ``<name>.safetensors``: the actor's weights (``<layer>.weight`` of shape ``(out, in)`` and
+  ``<layer>.bias``, the layout of ``torch.nn.Linear``);
+- ``<name>.json``: the sidecar, which says how to read them (layer names, activation, action
+  bounds), where the policy came from (training config) and how good it is (score).
+
+The actor is a SAC tanh-Gaussian actor used deterministically: ``action = tanh(mean(obs))``
+scaled to the action space. The log-std head, if present in the file, is ignored. Inference is
+plain numpy in float64 so that dataset builds do not depend on torch's kernels.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pathlib
+from collections.abc import Mapping, Sequence
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from offdyn_bench.errors import OffdynError
+
+POLICY_FORMAT = "offdyn-policy/1"
+ACTIVATIONS = {
+    "relu": lambda x: np.maximum(x, 0.0),
+    "tanh": np.tanh,
+}
+
+
+class PolicyError(OffdynError):
+    """A policy file that is missing, malformed or not the one a recipe expects."""
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Anything that can act: one observation in, one action out."""
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray: ...
+
+
+class UniformRandomPolicy:
+    """Uniform actions inside the box, from its own seeded generator (reproducible)."""
+
+    def __init__(self, low: np.ndarray, high: np.ndarray, seed: int) -> None:
+        self.low = np.asarray(low, dtype=np.float64)
+        self.high = np.asarray(high, dtype=np.float64)
+        self.rng = np.random.default_rng(seed)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self.rng.uniform(self.low, self.high)
+
+
+class MLPPolicy:
+    """A deterministic tanh-squashed MLP actor (the mean of a SAC tanh-Gaussian actor)."""
+
+    def __init__(self, layers: Sequence[tuple[np.ndarray, np.ndarray]], activation: str,
+                 action_low: np.ndarray, action_high: np.ndarray) -> None:
+        if activation not in ACTIVATIONS:
+            raise PolicyError(f"unknown activation {activation!r}; expected one of {sorted(ACTIVATIONS)}")
+        self.layers = [(np.asarray(w, dtype=np.float64), np.asarray(b, dtype=np.float64)) for w, b in layers]
+        self.activation = ACTIVATIONS[activation]
+        low = np.asarray(action_low, dtype=np.float64)
+        high = np.asarray(action_high, dtype=np.float64)
+        self.action_scale = (high - low) / 2.0
+        self.action_bias = (high + low) / 2.0
+
+    @property
+    def observation_dim(self) -> int:
+        return int(self.layers[0][0].shape[1])
+
+    @property
+    def action_dim(self) -> int:
+        return int(self.layers[-1][0].shape[0])
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        x = np.asarray(obs, dtype=np.float64)
+        for weight, bias in self.layers[:-1]:
+            x = self.activation(weight @ x + bias)
+        weight, bias = self.layers[-1]
+        return np.tanh(weight @ x + bias) * self.action_scale + self.action_bias
+
+
+def sidecar_path(weights_path: str | pathlib.Path) -> pathlib.Path:
+    """``foo.safetensors`` -> ``foo.json``."""
+    return pathlib.Path(weights_path).with_suffix(".json")
+
+
+def file_sha256(path: str | pathlib.Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def policy_sha256(weights_path: str | pathlib.Path) -> str:
+    """The hash a recipe pins: weights and sidecar together (the sidecar decides how the
+    weights act, e.g. the action bounds)."""
+    weights_path = pathlib.Path(weights_path)
+    digest = hashlib.sha256()
+    digest.update(file_sha256(weights_path).encode())
+    digest.update(file_sha256(sidecar_path(weights_path)).encode())
+    return digest.hexdigest()
+
+
+def read_sidecar(weights_path: str | pathlib.Path) -> dict[str, Any]:
+    weights_path = pathlib.Path(weights_path)
+    sidecar = sidecar_path(weights_path)
+    if not weights_path.is_file():
+        raise PolicyError(f"policy weights not found at {weights_path} (expected a .safetensors file with "
+                          f"a .json sidecar beside it)")
+    if not sidecar.is_file():
+        raise PolicyError(f"policy sidecar not found at {sidecar}; a policy is a .safetensors file plus a "
+                          f".json sidecar with its architecture, training config and score")
+    try:
+        meta = json.loads(sidecar.read_text())
+    except json.JSONDecodeError as error:
+        raise PolicyError(f"policy sidecar {sidecar} is not valid JSON: {error}") from error
+    if meta.get("format") != POLICY_FORMAT:
+        raise PolicyError(f"policy sidecar {sidecar}: format {meta.get('format')!r}, expected {POLICY_FORMAT!r}")
+    return meta
+
+
+def load_policy(weights_path: str | pathlib.Path) -> MLPPolicy:
+    """Load a policy from ``<name>.safetensors`` and its ``<name>.json`` sidecar (no pickle)."""
+    from safetensors.numpy import load_file
+
+    weights_path = pathlib.Path(weights_path)
+    meta = read_sidecar(weights_path)
+    arch = meta.get("architecture") or {}
+    names = list(arch.get("hidden_layers", [])) + [arch.get("mean_layer")]
+    if names[-1] is None:
+        raise PolicyError(f"policy sidecar {sidecar_path(weights_path)}: architecture.mean_layer is missing")
+    try:
+        tensors = load_file(str(weights_path))
+    except Exception as error:  # safetensors raises its own error types for corrupt headers
+        raise PolicyError(f"cannot read policy weights {weights_path}: {error}") from error
+    layers = []
+    for name in names:
+        missing = [key for key in (f"{name}.weight", f"{name}.bias") if key not in tensors]
+        if missing:
+            raise PolicyError(f"policy {weights_path}: tensors {missing} missing; file has {sorted(tensors)}")
+        layers.append((tensors[f"{name}.weight"], tensors[f"{name}.bias"]))
+    for i, (name, (weight, bias)) in enumerate(zip(names, layers)):
+        if weight.ndim != 2 or bias.shape != (weight.shape[0],):
+            raise PolicyError(f"policy {weights_path}: layer {name!r} has weight {weight.shape} and bias "
+                              f"{bias.shape}; expected (out, in) and (out,)")
+        if i and weight.shape[1] != layers[i - 1][0].shape[0]:
+            raise PolicyError(f"policy {weights_path}: layer {name!r} takes {weight.shape[1]} inputs but the "
+                              f"layer before it gives {layers[i - 1][0].shape[0]}")
+    policy = MLPPolicy(layers, arch.get("activation", "relu"), meta["action_low"], meta["action_high"])
+    if policy.observation_dim != int(meta["observation_dim"]) or policy.action_dim != int(meta["action_dim"]):
+        raise PolicyError(f"policy {weights_path}: weights map {policy.observation_dim} -> {policy.action_dim} "
+                          f"but the sidecar says {meta['observation_dim']} -> {meta['action_dim']}")
+    return policy
+
+
+def save_policy(weights_path: str | pathlib.Path, layers: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                *, action_low: Sequence[float], action_high: Sequence[float], trained_on: str,
+                training: Mapping[str, Any], score: Mapping[str, Any] | None,
+                activation: str = "relu") -> pathlib.Path:
+    """Write an MLP actor in this module's format. ``layers`` maps layer name to ``(weight,
+    bias)`` in order, the last one being the mean head. ``training`` is its config and
+    ``score`` its evaluation (with provenance); write ``None`` only for untrained policies."""
+    from safetensors.numpy import save_file
+
+    weights_path = pathlib.Path(weights_path)
+    names = list(layers)
+    tensors = {}
+    for name, (weight, bias) in layers.items():
+        tensors[f"{name}.weight"] = np.ascontiguousarray(weight, dtype=np.float32)
+        tensors[f"{name}.bias"] = np.ascontiguousarray(bias, dtype=np.float32)
+    first_weight = layers[names[0]][0]
+    last_weight = layers[names[-1]][0]
+    sidecar = {
+        "format": POLICY_FORMAT,
+        "kind": "tanh-gaussian-actor-mean",
+        "trained_on": trained_on,
+        "observation_dim": int(first_weight.shape[1]),
+        "action_dim": int(last_weight.shape[0]),
+        "action_low": [float(x) for x in action_low],
+        "action_high": [float(x) for x in action_high],
+        "architecture": {"hidden_layers": names[:-1], "mean_layer": names[-1], "activation": activation},
+        "training": dict(training),
+        "score": None if score is None else dict(score),
+    }
+    weights_path.parent.mkdir(parents=True, exist_ok=True)
+    save_file(tensors, str(weights_path))
+    sidecar_path(weights_path).write_text(json.dumps(sidecar, indent=2, sort_keys=True) + "\n")
+    return weights_path

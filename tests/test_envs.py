@@ -1,0 +1,177 @@
+"""Physical meaning of the shifts, the physics state in info, and exact restarts."""
+
+from __future__ import annotations
+
+import gymnasium
+import mujoco
+import numpy as np
+import pytest
+
+import offdyn_bench  # noqa: F401  (registers the ids)
+from offdyn_bench.envs import make_robot_env, set_full_state
+
+
+def _drop_height(env: gymnasium.Env, steps: int) -> float:
+    """Lift the robot into the air at rest and return how far it falls in ``steps`` steps."""
+    env.reset(seed=0)
+    base = env.unwrapped
+    qpos = base.init_qpos.copy()
+    qpos[1] += 2.0  # rootz: well clear of the floor
+    base.set_state(qpos, np.zeros(base.model.nv))
+    z0 = base.data.qpos[1]
+    for _ in range(steps):
+        env.step(np.zeros(env.action_space.shape))
+    return float(z0 - base.data.qpos[1])
+
+
+def test_half_gravity_hopper_falls_half_as_far():
+    nominal = _drop_height(gymnasium.make("offdyn/Hopper-gravity-0.5-source-v0"), 20)
+    shifted = _drop_height(gymnasium.make("offdyn/Hopper-gravity-0.5-target-v0"), 20)
+    t = 20 * gymnasium.make("offdyn/Hopper-gravity-0.5-source-v0").unwrapped.dt
+    assert nominal == pytest.approx(0.5 * 9.81 * t**2, rel=0.02)  # free fall, no contact
+    assert shifted / nominal == pytest.approx(0.5, rel=0.01)
+
+
+def test_friction_shift_scales_every_active_contact():
+    """MuJoCo uses the larger friction of two geoms; scaling all geoms scales every contact."""
+
+    def contact_friction(env_id: str) -> np.ndarray:
+        env = gymnasium.make(env_id)
+        env.reset(seed=0)
+        for _ in range(30):  # let the foot settle on the floor
+            env.step(np.zeros(env.action_space.shape))
+        data = env.unwrapped.data
+        assert data.ncon > 0
+        return np.array([data.contact[i].friction for i in range(data.ncon)])
+
+    nominal = contact_friction("offdyn/Hopper-friction-0.5-source-v0")
+    shifted = contact_friction("offdyn/Hopper-friction-0.5-target-v0")
+    n = min(len(nominal), len(shifted))
+    np.testing.assert_allclose(shifted[:n], 0.5 * nominal[:n])
+
+
+def test_dead_zone_passes_no_torque_for_small_commands():
+    env = make_robot_env("Hopper", [{"kind": "action_deadzone", "target": "leg_joint", "threshold": 0.2}])
+    env.reset(seed=0)
+    data = env.unwrapped.data
+    env.step(np.array([0.15, 0.15, -0.15]))
+    np.testing.assert_allclose(data.actuator_force, [0.15, 0.0, -0.15])  # motor force = gain * ctrl
+    env.step(np.array([0.5, 0.5, 0.5]))
+    np.testing.assert_allclose(data.actuator_force, 0.5)  # large commands pass unchanged
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_action_delay_shifts_the_applied_sequence_by_exactly_k(k):
+    env = make_robot_env("Hopper", [{"kind": "action_delay", "steps": k}])
+    env.reset(seed=0)
+    rng = np.random.default_rng(1)
+    commanded = rng.uniform(-1, 1, size=(12, 3))
+    applied = []
+    for action in commanded:
+        env.step(action)
+        applied.append(env.unwrapped.data.ctrl.copy())
+    applied = np.array(applied)
+    np.testing.assert_allclose(applied[k:], commanded[:-k])
+    np.testing.assert_allclose(applied[:k], 0.0)
+
+
+def test_observation_delay_returns_the_observation_k_steps_back():
+    plain = make_robot_env("Hopper")
+    delayed = make_robot_env("Hopper", [{"kind": "obs_delay", "steps": 2}])
+    obs_plain = [plain.reset(seed=4)[0]]
+    obs_delayed = [delayed.reset(seed=4)[0]]
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(8, 3))
+    for action in actions:
+        obs_plain.append(plain.step(action)[0])
+        obs_delayed.append(delayed.step(action)[0])
+    np.testing.assert_allclose(obs_delayed[2:], obs_plain[:-2], rtol=1e-6)
+    np.testing.assert_allclose(obs_delayed[1], obs_plain[0], rtol=1e-6)
+
+
+def test_joint_noise_is_seeded_from_the_env():
+    def applied(seed: int) -> np.ndarray:
+        env = gymnasium.make("offdyn/Hopper-joint-noise-0.5-target-v0")
+        env.reset(seed=seed)
+        out = []
+        for _ in range(20):
+            _, _, _, _, info = env.step(np.zeros(3))
+            out.append(info["applied_action"])
+        return np.array(out)
+
+    np.testing.assert_array_equal(applied(7), applied(7))
+    assert not np.allclose(applied(7), applied(8))
+    assert np.std(applied(7)) == pytest.approx(0.5, rel=0.3)
+
+
+def test_kinematic_shift_stops_the_joint_at_the_new_limit():
+    env = gymnasium.make("offdyn/Hopper-kinematic-thigh-hard-target-v0")
+    env.reset(seed=0)
+    base = env.unwrapped
+    qpos = base.init_qpos.copy()
+    qpos[1] += 1.0  # in the air so the thigh swings freely
+    base.set_state(qpos, np.zeros(base.model.nv))
+    thigh = base.model.joint("thigh_joint")
+    for _ in range(40):
+        env.step(np.array([-1.0, 0.0, 0.0]))  # drive the thigh towards its lower limit
+    angle = float(base.data.qpos[thigh.qposadr[0]])
+    assert np.degrees(angle) > -30.0 - 2.0  # soft limits allow a little penetration
+    assert np.degrees(angle) < -20.0  # and the joint did reach the new limit region
+
+
+def test_info_carries_the_full_physics_state_before_and_after():
+    env = gymnasium.make("offdyn/Hopper-gravity-0.5-target-v0")
+    _, info = env.reset(seed=0)
+    model = env.unwrapped.model
+    size = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    assert info["state"].shape == (size,)
+    previous = info["state"]
+    for _ in range(5):
+        _, _, _, _, info = env.step(env.action_space.sample())
+        np.testing.assert_array_equal(info["prev_state"], previous)
+        previous = info["state"]
+    # time, then qpos: the state vector is MuJoCo's own layout.
+    np.testing.assert_array_equal(info["state"][1: 1 + model.nq], env.unwrapped.data.qpos)
+
+
+@pytest.mark.parametrize("env_effects", [
+    [],
+    [{"kind": "action_delay", "steps": 2}, {"kind": "obs_delay", "steps": 1}],
+    [{"kind": "gravity", "scale": 2.0}, {"kind": "action_delay", "steps": 1, "target": "foot_joint"}],
+])
+def test_restart_from_a_recorded_state_is_exact(env_effects):
+    """A simulator restored from info['state'] continues exactly like the original, buffers included."""
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, size=(30, 3))
+    env = make_robot_env("Hopper", env_effects)
+    env.reset(seed=1)
+    states, observations = [], []
+    for action in actions:
+        obs, _, _, _, info = env.step(action)
+        states.append(info["prev_state"])
+        observations.append(obs)
+    fresh = make_robot_env("Hopper", env_effects)
+    fresh.reset(seed=99)
+    set_full_state(fresh, states[10])
+    for t in range(10, 30):
+        obs, _, _, _, info = fresh.step(actions[t])
+        # The constraint solver's warm start is not part of the physics state: agreement is to
+        # round-off, not bit for bit.
+        if not any(e["kind"] == "obs_delay" for e in env_effects):
+            np.testing.assert_allclose(obs, observations[t], rtol=1e-9, atol=1e-12)
+        if t + 1 < 30:
+            np.testing.assert_allclose(info["state"], states[t + 1], rtol=1e-9, atol=1e-12)
+
+
+def test_set_full_state_rejects_a_wrong_size():
+    env = make_robot_env("Hopper")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"expected a physics state of shape \(13,\), got \(12,\)"):
+        set_full_state(env, np.zeros(12))
+
+
+def test_extra_effects_extend_a_registered_task():
+    env = gymnasium.make("offdyn/Hopper-gravity-0.5-source-v0",
+                         extra_effects=[{"kind": "mass", "target": "torso", "scale": 2.0}])
+    base = gymnasium.make("offdyn/Hopper-gravity-0.5-source-v0")
+    torso = env.unwrapped.model.body("torso").id
+    assert env.unwrapped.model.body_mass[torso] == pytest.approx(2 * base.unwrapped.model.body_mass[torso])
