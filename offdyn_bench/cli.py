@@ -13,6 +13,16 @@ from offdyn_bench.task_commands import tasks_app  # noqa: E402
 app.add_typer(tasks_app, name="tasks")
 
 
+@app.command("demo")
+def demo(task: str = typer.Option("hopper-gravity-0.5", help="the pair to roll out"),
+         seed: int = typer.Option(0, help="seed of the rollout")) -> None:
+    """Run the suite end to end on an embedded default (no external service)."""
+    from offdyn_bench.demo import run_demo
+
+    run_demo(task=task, seed=seed)
+
+
+
 def main() -> None:
     app()
 

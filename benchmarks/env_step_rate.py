@@ -1,0 +1,76 @@
+"""Steps per second of registered envs against the vanilla Gymnasium v5 env, side by side.
+
+    .venv/bin/python benchmarks/env_step_rate.py [--steps 20000] [--rounds 5]
+
+Every env runs the same pre-drawn actions with ``terminate_when_unhealthy=False`` (so reset
+frequency does not depend on the dynamics), in interleaved rounds so drifts in machine load hit
+all envs alike. The figure is the median over rounds of steps/s, reported as a ratio to the
+vanilla env measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import gymnasium
+import numpy as np
+
+import offdyn_bench  # noqa: F401  (registers the ids)
+
+ROBOTS = ("Hopper", "Walker2d", "HalfCheetah", "Ant")
+
+
+def cases(robot: str) -> list[tuple[str, str]]:
+    """(label, env id) pairs: vanilla reference first."""
+    return [
+        ("vanilla v5", f"{robot}-v5"),
+        ("no effects (source)", f"offdyn/{robot}-gravity-0.5-source-v0"),
+        ("model effects (gravity 0.5)", f"offdyn/{robot}-gravity-0.5-target-v0"),
+        ("model effects (morph)", next(f"offdyn/{robot}-morph-{p}-easy-target-v0"
+                                       for p in offdyn_bench.robots.ROBOTS[robot].morph_parts)),
+        ("channel effects (joint noise 0.1)", f"offdyn/{robot}-joint-noise-0.1-target-v0"),
+    ]
+
+
+def steps_per_second(env: gymnasium.Env, actions: np.ndarray) -> float:
+    env.reset(seed=0)
+    start = time.perf_counter()
+    for action in actions:
+        _, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            env.reset()
+    return len(actions) / (time.perf_counter() - start)
+
+
+def measure(robot: str, steps: int, rounds: int) -> list[tuple[str, float, float]]:
+    labelled = cases(robot)
+    kwargs = {} if robot == "HalfCheetah" else {"terminate_when_unhealthy": False}
+    envs = [gymnasium.make(env_id, max_episode_steps=1000, **kwargs) for _, env_id in labelled]
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(steps, *envs[0].action_space.shape))
+    for env in envs:  # warm-up
+        steps_per_second(env, actions[:500])
+    rates: list[list[float]] = [[] for _ in envs]
+    for _ in range(rounds):
+        for i, env in enumerate(envs):
+            rates[i].append(steps_per_second(env, actions))
+    medians = [statistics.median(r) for r in rates]
+    return [(label, rate, rate / medians[0]) for (label, _), rate in zip(labelled, medians, strict=True)]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=20000)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--robots", nargs="*", default=list(ROBOTS))
+    args = parser.parse_args()
+    print("| robot | env | steps/s | ratio to vanilla |")
+    print("|---|---|---:|---:|")
+    for robot in args.robots:
+        for label, rate, ratio in measure(robot, args.steps, args.rounds):
+            print(f"| {robot} | {label} | {rate:,.0f} | {ratio:.3f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""The command line: tasks list/show and the demo, as a user runs them."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from offdyn_bench.cli import app
+from offdyn_bench.tasks import TASKS
+
+runner = CliRunner()
+
+
+def test_tasks_list_shows_the_grid_and_every_pair():
+    result = runner.invoke(app, ["tasks", "list"])
+    assert result.exit_code == 0, result.output
+    assert f"{len(TASKS)} pairs, {2 * len(TASKS)} registered Gymnasium ids" in result.output
+    for name in TASKS:
+        assert name in result.output
+
+
+def test_tasks_list_filters_and_json():
+    result = runner.invoke(app, ["tasks", "list", "--robot", "hopper", "--shift", "gravity", "--json"])
+    assert result.exit_code == 0, result.output
+    pairs = json.loads(result.output)
+    assert [p["name"] for p in pairs] == ["hopper-gravity-0.1", "hopper-gravity-0.5",
+                                          "hopper-gravity-2.0", "hopper-gravity-5.0"]
+    assert pairs[1]["target_effects"] == [{"kind": "gravity", "target": None, "scale": 0.5}]
+
+
+def test_tasks_show_reports_compiled_differences_in_words():
+    result = runner.invoke(app, ["tasks", "show", "hopper-gravity-0.5"])
+    assert result.exit_code == 0, result.output
+    assert "opt.gravity: [0 0 -9.81] -> [0 0 -4.905]" in result.output
+    result = runner.invoke(app, ["tasks", "show", "walker2d-morph-thigh-hard"])
+    assert "body_mass[thigh]" in result.output and "(x0.008)" in result.output
+
+
+def test_tasks_show_unknown_name_suggests_close_matches():
+    result = runner.invoke(app, ["tasks", "show", "hoper-gravity-0.5"])
+    assert result.exit_code == 2
+    assert "closest valid names: 'hopper-gravity-0.5'" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_demo_runs_end_to_end():
+    result = runner.invoke(app, ["demo"])
+    assert result.exit_code == 0, result.output
+    assert "same actions in source and target" in result.output
