@@ -261,17 +261,17 @@ class ChannelEffects(gymnasium.Wrapper):
         self._obs_stages = [_Stage(e, e.dimension_mask(obs_size, None))
                             for e in self.effects if e.channel == "observation"]
         self._stages = self._action_stages + self._obs_stages
+        self._buffered = [stage for stage in self._stages if stage.buffer.size]
         self._rng = np.random.default_rng(0)
-        self._low = np.asarray(env.observation_space.low)
 
     @property
     def channel_state_size(self) -> int:
-        return sum(stage.buffer.size for stage in self._stages)
+        return sum(stage.buffer.size for stage in self._buffered)
 
     def channel_state(self) -> np.ndarray:
-        if not self._stages:
+        if not self._buffered:
             return np.zeros(0)
-        return np.concatenate([stage.buffer.ravel() for stage in self._stages])
+        return np.concatenate([stage.buffer.ravel() for stage in self._buffered])
 
     def _observe(self, obs: np.ndarray) -> np.ndarray:
         for stage in self._obs_stages:
@@ -280,6 +280,7 @@ class ChannelEffects(gymnasium.Wrapper):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
+        # A fresh generator per episode, drawn from the env's RNG: the same seed, the same noise.
         self._rng = np.random.default_rng(int(self.env.unwrapped.np_random.integers(2**63)))
         zero_action = np.zeros(self.action_space.shape)
         for stage in self._action_stages:
@@ -292,14 +293,15 @@ class ChannelEffects(gymnasium.Wrapper):
         return obs, info
 
     def step(self, action):
-        prev_channel = self.channel_state()
+        prev_channel = self.channel_state() if self._buffered else None
         command = np.asarray(action, dtype=float)
         for stage in self._action_stages:
             command = stage(command, self._rng)
         obs, reward, terminated, truncated, info = self.env.step(command)
-        obs = self._observe(np.asarray(obs, dtype=float))
+        if self._obs_stages:
+            obs = self._observe(np.asarray(obs, dtype=float))
         info["applied_action"] = command
-        if "state" in info:
+        if prev_channel is not None and "state" in info:
             info["prev_state"] = np.concatenate([info["prev_state"], prev_channel])
             info["state"] = np.concatenate([info["state"], self.channel_state()])
         return obs, reward, terminated, truncated, info
@@ -311,6 +313,6 @@ class ChannelEffects(gymnasium.Wrapper):
         inner = state[: state.size - n]
         self.env.get_wrapper_attr("set_full_state")(inner)
         offset = inner.size
-        for stage in self._stages:
+        for stage in self._buffered:
             stage.buffer[:] = state[offset: offset + stage.buffer.size].reshape(stage.buffer.shape)
             offset += stage.buffer.size
