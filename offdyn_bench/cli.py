@@ -11,6 +11,9 @@ app = typer.Typer(no_args_is_help=True, add_completion=False,
 from offdyn_bench.task_commands import tasks_app  # noqa: E402
 
 app.add_typer(tasks_app, name="tasks")
+from offdyn_bench.datasets.cli import datasets_app  # noqa: E402
+
+app.add_typer(datasets_app, name="datasets")
 
 
 @app.command("demo")

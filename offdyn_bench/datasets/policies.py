@@ -22,6 +22,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from offdyn_bench.datasets.archive import sha256_file
 from offdyn_bench.errors import OffdynError
 
 POLICY_FORMAT = "offdyn-policy/1"
@@ -89,21 +90,13 @@ def sidecar_path(weights_path: str | pathlib.Path) -> pathlib.Path:
     return pathlib.Path(weights_path).with_suffix(".json")
 
 
-def file_sha256(path: str | pathlib.Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def policy_sha256(weights_path: str | pathlib.Path) -> str:
     """The hash a recipe pins: weights and sidecar together (the sidecar decides how the
     weights act, e.g. the action bounds)."""
     weights_path = pathlib.Path(weights_path)
     digest = hashlib.sha256()
-    digest.update(file_sha256(weights_path).encode())
-    digest.update(file_sha256(sidecar_path(weights_path)).encode())
+    digest.update(sha256_file(weights_path).encode())
+    digest.update(sha256_file(sidecar_path(weights_path)).encode())
     return digest.hexdigest()
 
 

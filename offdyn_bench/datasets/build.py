@@ -1,0 +1,263 @@
+"""Build a dataset from its recipe: collect in the target, write with Minari, hash, archive,
+install.
+
+The bytes are a function of the recipe, the code and the platform's libraries only: fixed seeds,
+a deterministic behaviour, Minari's Arrow storage (HDF5 would stamp group creation times), no
+time, host or path in the metadata, and archives with fixed member order, owner and time.
+``tests/datasets/test_build.py`` builds twice and compares the sha256 of every file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import pathlib
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from offdyn_bench.datasets.archive import compare_files, tree_sha256, write_archive
+from offdyn_bench.datasets.collect import collect_transitions, episode_returns, gaussian_action_noise
+from offdyn_bench.datasets.install import dataset_dir, datasets_root, install_tree, is_installed, staging
+from offdyn_bench.datasets.manifest import (
+    ArchiveRecord,
+    Entry,
+    Manifest,
+    archive_name,
+    entry_name,
+    read_manifest,
+    write_json_atomically,
+    write_manifest,
+)
+from offdyn_bench.datasets.policies import Policy, PolicyError, UniformRandomPolicy, load_policy, policy_sha256, read_sidecar
+from offdyn_bench.datasets.recipes import REPO_ROOT, Recipe, RecipeError, dynamics_label
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.tasks import TaskPair
+from offdyn_bench.versions import versions
+
+AUTHOR = "offdyn-bench"
+AUTHOR_EMAIL = "offdyn-bench@users.noreply.github.com"
+INFOS_LAYOUT = ("infos row 0 comes from reset, row t+1 from step t; infos/state[t] is the full physics state "
+                "(mjSTATE_FULLPHYSICS, then channel delay buffers) of observation t, so step t goes from "
+                "state[t] to state[t+1] under actions[t]; infos/applied_action is the command the physics "
+                "received on targets with action-channel effects; keys a reset does not report are NaN in row 0")
+
+
+class MissingPolicyError(OffdynError):
+    """A recipe's behaviour policy (or a required file of it) is not where the recipe says."""
+
+
+class BuildMismatchError(OffdynError):
+    """A rebuild whose bytes differ from the hashes the manifest records."""
+
+
+@contextlib.contextmanager
+def minari_root(path: pathlib.Path) -> Iterator[None]:
+    """Point Minari at ``path`` for the duration (Minari places datasets by this variable only)."""
+    before = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(path)
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["MINARI_DATASETS_PATH"]
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = before
+
+
+def repo_path(path: str) -> pathlib.Path:
+    """Recipe paths are relative to the repository root (``assets/policies/...``)."""
+    candidate = pathlib.Path(path)
+    return candidate if candidate.is_absolute() else REPO_ROOT / candidate
+
+
+@dataclasses.dataclass(frozen=True)
+class BuildResult:
+    entry: Entry
+    installed_at: pathlib.Path | None
+    archive_path: pathlib.Path | None
+    seconds: float
+    already_installed: bool = False
+
+    @property
+    def transitions_per_second(self) -> float:
+        return (self.entry.total_steps or 0) / self.seconds if self.seconds > 0 else float("nan")
+
+
+def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Policy, Recipe, dict[str, Any]]:
+    """The behaviour policy, the recipe with its policy hash pinned, and its provenance."""
+    space = env.action_space
+    assert isinstance(space, gymnasium.spaces.Box)
+    behaviour = recipe.behaviour
+    if behaviour.kind == "uniform-random":
+        seed = [recipe.seed, 1]
+        return (UniformRandomPolicy(space.low, space.high, seed=np.random.SeedSequence(seed).generate_state(1)[0]),
+                recipe, {"kind": "uniform-random", "rng_seed": seed})
+    path = repo_path(str(behaviour.policy))
+    if not path.is_file():
+        raise MissingPolicyError(
+            f"{recipe.dataset_id}: behaviour policy {behaviour.policy} is missing. It is the SAC policy trained "
+            f"in the source dynamics ({dynamics_label(pair, 'source')}), DAP's 'RL on source'. Train it with "
+            f"the SAC baseline, put its .safetensors and .json sidecar at {behaviour.policy}, then run: "
+            f"offdyn-bench datasets build {recipe.dataset_id} --update-manifest")
+    try:
+        digest = policy_sha256(path)
+        policy = load_policy(path)
+        sidecar = read_sidecar(path)
+    except PolicyError as error:
+        raise MissingPolicyError(f"{recipe.dataset_id}: {error}") from error
+    if behaviour.policy_sha256 is not None and behaviour.policy_sha256 != digest:
+        raise RecipeError(f"{recipe.dataset_id}: behaviour policy {behaviour.policy} has sha256 {digest}, the "
+                          f"recipe pins {behaviour.policy_sha256}; a new policy is a new dataset version")
+    obs_dim = int(np.prod(env.observation_space.shape))  # type: ignore[arg-type]
+    if policy.observation_dim != obs_dim or policy.action_dim != space.shape[0]:
+        raise PolicyError(f"{recipe.dataset_id}: policy {behaviour.policy} maps {policy.observation_dim} -> "
+                          f"{policy.action_dim}, the task's target env has {obs_dim} -> {space.shape[0]}")
+    pinned = dataclasses.replace(recipe, behaviour=dataclasses.replace(behaviour, policy_sha256=digest))
+    provenance = {"kind": "policy", "policy": behaviour.policy, "policy_sha256": digest,
+                  "trained_on": sidecar.get("trained_on"), "training": sidecar.get("training"),
+                  "score": sidecar.get("score"), "action_noise_std": behaviour.action_noise_std,
+                  "action_noise_seed": [recipe.seed, 2]}
+    return policy, pinned, provenance
+
+
+def reference_scores(recipe: Recipe, pair: TaskPair) -> dict[str, Any]:
+    """Returns in the target of a uniform-random policy and, when its file ships, of the
+    ``sac-target`` oracle; both on the same fixed episode seeds, with their provenance."""
+    env = pair.make("target")
+    seeds = list(range(recipe.reference_seed, recipe.reference_seed + recipe.reference_episodes))
+    rng_seed = [recipe.reference_seed, 1]
+    space = env.action_space
+    assert isinstance(space, gymnasium.spaces.Box)
+    random_policy = UniformRandomPolicy(space.low, space.high,
+                                        seed=np.random.SeedSequence(rng_seed).generate_state(1)[0])
+    random_returns = episode_returns(env, random_policy, episodes=recipe.reference_episodes, seed=seeds[0])
+    common = {"env_id": pair.env_id("target"), "episode_seeds": seeds, "versions": versions(),
+              "command": f"offdyn-bench datasets build {recipe.dataset_id}"}
+    scores: dict[str, Any] = {
+        "random": {"value": float(np.mean(random_returns)), "std": float(np.std(random_returns)),
+                   "returns": random_returns, "policy": "uniform random actions", "rng_seed": rng_seed, **common},
+    }
+    oracle_path = repo_path(recipe.oracle_policy) if recipe.oracle_policy else None
+    if oracle_path is not None and oracle_path.is_file():
+        oracle = load_policy(oracle_path)
+        oracle_returns = episode_returns(env, oracle, episodes=recipe.reference_episodes, seed=seeds[0])
+        sidecar = read_sidecar(oracle_path)
+        scores["sac-target"] = {"value": float(np.mean(oracle_returns)), "std": float(np.std(oracle_returns)),
+                                "returns": oracle_returns, "policy": recipe.oracle_policy,
+                                "policy_sha256": policy_sha256(oracle_path), "training": sidecar.get("training"),
+                                **common}
+    else:
+        scores["sac-target"] = {"value": None, "policy": recipe.oracle_policy,
+                                "note": f"no sac-target policy ships at {recipe.oracle_policy} (SAC trained in the "
+                                        "target, DAP's 'RL on target'); the score is left empty rather than guessed"}
+    env.close()
+    return scores
+
+
+def _write_with_minari(recipe: Recipe, pair: TaskPair, episodes: list, scores: dict[str, Any],
+                       provenance: dict[str, Any], root: pathlib.Path) -> pathlib.Path:
+    import minari
+
+    oracle = scores["sac-target"]["value"]
+    refs = {} if oracle is None else {"ref_min_score": scores["random"]["value"], "ref_max_score": oracle}
+    with minari_root(root):
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id=recipe.dataset_id,
+            buffer=episodes,
+            env=pair.env_id("source"),
+            eval_env=pair.env_id("target"),
+            algorithm_name=f"offdyn-bench {recipe.quality}",
+            author=AUTHOR,
+            author_email=AUTHOR_EMAIL,
+            code_permalink="offdyn_bench/datasets/build.py",
+            description=(f"{recipe.quality} data collected in the target of task {pair.name} v{pair.version} "
+                         f"({pair.description}); env_spec is the source, eval_env_spec the target."),
+            data_format=recipe.data_format,
+            requirements=[f"mujoco=={versions()['mujoco']}", f"gymnasium=={versions()['gymnasium']}"],
+            **refs,
+        )
+        dataset.storage.update_metadata({"offdyn": provenance})
+    return root / recipe.dataset_id
+
+
+def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: pathlib.Path | None = None,
+                  recorded: Entry | None = None, install: bool = True, replace: bool = False,
+                  on_progress: Callable[[int], None] | None = None) -> BuildResult:
+    """Build ``recipe`` and (by default) install it under the Minari datasets root.
+
+    ``out_dir`` receives the archive and manifest entry in the remote layout. ``recorded`` is
+    the manifest entry to reproduce: when it has file hashes, a build whose bytes differ is an
+    error and nothing is installed or written.
+    """
+    root = root or datasets_root()
+    started = time.perf_counter()
+    pair = recipe.check_task()
+    env = pair.make(recipe.collect_in)
+    policy, recipe, behaviour = _behaviour(recipe, pair, env)
+    noise_seed = np.random.SeedSequence([recipe.seed, 2]).generate_state(1)[0]
+    episodes = list(collect_transitions(env, policy, num_transitions=recipe.num_transitions, seed=recipe.seed,
+                                        action_noise=gaussian_action_noise(recipe.behaviour.action_noise_std,
+                                                                           int(noise_seed)),
+                                        on_step=on_progress))
+    env.close()
+    scores = reference_scores(recipe, pair)
+    provenance = {
+        "recipe": recipe.to_dict(),
+        "task": pair.to_dict(),
+        "behaviour": behaviour,
+        "seeds": {"episode_seeds": f"{recipe.seed} + episode index", "episodes": len(episodes)},
+        "reference_scores": scores,
+        "versions": versions(),
+        "infos": INFOS_LAYOUT,
+        "command": f"offdyn-bench datasets build {recipe.dataset_id}",
+    }
+    with staging(root) as work:
+        built = _write_with_minari(recipe, pair, episodes, scores, provenance, work / "minari")
+        files = tree_sha256(built)
+        if recorded is not None and recorded.files is not None:
+            problems = compare_files(recorded.files, files)
+            if problems:
+                raise BuildMismatchError(
+                    f"rebuilt {recipe.dataset_id} differs from the manifest ({len(problems)} problems: "
+                    + "; ".join(problems[:3]) + "). The manifest was built with "
+                    f"{recorded.built_with}, this build uses {versions()}; nothing was installed")
+        archive_path = (out_dir if out_dir is not None else work / "archive") / archive_name(recipe.dataset_id)
+        archive_sha = write_archive(built, archive_path)
+        entry = Entry(recipe=recipe, files=files,
+                      archive=ArchiveRecord(archive_name(recipe.dataset_id), archive_sha, archive_path.stat().st_size),
+                      total_steps=sum(len(e.rewards) for e in episodes), total_episodes=len(episodes),
+                      reference_scores=scores, built_with=versions())
+        if out_dir is not None:
+            publish_entry(entry, out_dir)
+        installed_at, already = None, False
+        if install:
+            if is_installed(recipe.dataset_id, root) and not replace:
+                if tree_sha256(dataset_dir(recipe.dataset_id, root)) != files:
+                    raise OffdynError(f"{recipe.dataset_id} is installed at {dataset_dir(recipe.dataset_id, root)} "
+                                      "with other bytes; pass --force to replace it")
+                installed_at, already = dataset_dir(recipe.dataset_id, root), True
+            else:
+                installed_at = install_tree(built, recipe.dataset_id, root=root, replace=replace)
+    return BuildResult(entry=entry, installed_at=installed_at,
+                       archive_path=archive_path if out_dir is not None else None,
+                       seconds=time.perf_counter() - started, already_installed=already)
+
+
+def publish_entry(entry: Entry, out_dir: pathlib.Path) -> None:
+    """Write an entry in the remote layout: ``<id>.json`` beside the archive, and the folder's
+    ``datasets.json`` updated to include it."""
+    write_json_atomically(out_dir / entry_name(entry.dataset_id), entry.to_dict())
+    index = out_dir / "datasets.json"
+    manifest = read_manifest(index) if index.is_file() else Manifest({})
+    write_manifest(manifest.with_entry(entry), index)
+
+
+def record_in_manifest(entry: Entry, path: pathlib.Path | None = None) -> pathlib.Path:
+    """Write ``entry`` into the shipped manifest (or the one at ``path``)."""
+    manifest = read_manifest(path)
+    return write_manifest(manifest.with_entry(entry), path)
