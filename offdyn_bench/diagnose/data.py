@@ -1,0 +1,193 @@
+"""Measured transitions: the input of gap diagnosis, loaded from a ``.npz`` file or a Minari dataset.
+
+Rows are in time order within episodes; a new episode starts after a row that terminated or
+truncated (and the last row always ends one). ``qpos``/``qvel`` are the physics state *before*
+each step; when a dataset lacks them, :mod:`offdyn_bench.diagnose.source` rebuilds them from the
+observations where the observation determines them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import numpy as np
+
+from offdyn_bench.errors import OffdynError
+
+NPZ_REQUIRED = ("observations", "actions", "next_observations", "terminations", "truncations")
+NPZ_OPTIONAL = ("qpos", "qvel")
+
+
+class DiagnosisInputError(OffdynError):
+    """Data or an env id that gap diagnosis cannot work with; the message says what to fix."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Transitions:
+    """One row per control step: ``observations[t]``, ``actions[t]`` -> ``next_observations[t]``."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    next_observations: np.ndarray
+    terminations: np.ndarray
+    truncations: np.ndarray
+    qpos: np.ndarray | None = None
+    qvel: np.ndarray | None = None
+    origin: str = ""
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    @property
+    def size(self) -> int:
+        return len(self.actions)
+
+    @property
+    def has_state(self) -> bool:
+        return self.qpos is not None
+
+    @property
+    def episode_ends(self) -> np.ndarray:
+        ends = self.terminations | self.truncations
+        ends = ends.copy()
+        ends[-1] = True
+        return ends
+
+    @property
+    def episode_index(self) -> np.ndarray:
+        """The episode each row belongs to (0, 1, ...)."""
+        ends = self.episode_ends
+        return np.concatenate([[0], np.cumsum(ends[:-1])]).astype(int)
+
+    @property
+    def step_in_episode(self) -> np.ndarray:
+        """How many rows of the same episode precede each row."""
+        index = self.episode_index
+        starts = np.flatnonzero(np.r_[True, index[1:] != index[:-1]])
+        return np.arange(self.size) - starts[index]
+
+
+def _validate(data: Transitions) -> None:
+    arrays = {"observations": data.observations, "actions": data.actions,
+              "next_observations": data.next_observations}
+    for name, array in arrays.items():
+        if array.ndim != 2:
+            raise DiagnosisInputError(f"{name} must be a 2-D array (rows x dimensions), got shape {array.shape}")
+    n = len(data.actions)
+    if n == 0:
+        raise DiagnosisInputError(f"the dataset {data.origin or ''} is empty: no transitions to diagnose".replace("  ", " "))
+    for name, array in {**arrays, "terminations": data.terminations, "truncations": data.truncations}.items():
+        if len(array) != n:
+            raise DiagnosisInputError(f"{name} has {len(array)} rows but actions has {n}; every array needs one row per transition")
+    if data.observations.shape[1] != data.next_observations.shape[1]:
+        raise DiagnosisInputError(f"observations have {data.observations.shape[1]} dimensions but next_observations "
+                                  f"{data.next_observations.shape[1]}; both must have the observation's size")
+    if (data.qpos is None) != (data.qvel is None):
+        raise DiagnosisInputError("give both qpos and qvel, or neither")
+    if data.qpos is not None:
+        for name, array in {"qpos": data.qpos, "qvel": data.qvel}.items():
+            if array.ndim != 2 or len(array) != n:  # type: ignore[union-attr]
+                raise DiagnosisInputError(f"{name} must have one row per transition ({n}), got shape {array.shape}")  # type: ignore[union-attr]
+    for name, array in {**arrays, "qpos": data.qpos, "qvel": data.qvel}.items():
+        if array is None:
+            continue
+        bad = np.flatnonzero(~np.isfinite(array).all(axis=1))
+        if bad.size:
+            shown = ", ".join(str(i) for i in bad[:5]) + (" ..." if bad.size > 5 else "")
+            raise DiagnosisInputError(f"{name} has NaN or infinite values in {bad.size} row(s) ({shown}); "
+                                      "remove those transitions (and keep episodes contiguous) before diagnosis")
+
+
+def _as_float(array: np.ndarray, name: str) -> np.ndarray:
+    try:
+        out = np.asarray(array, dtype=float)
+    except (TypeError, ValueError) as error:
+        raise DiagnosisInputError(f"{name} must be numeric: {error}") from None
+    return out[:, None] if out.ndim == 1 else out
+
+
+def _as_flags(array: np.ndarray) -> np.ndarray:
+    return np.asarray(array).astype(bool).reshape(-1)
+
+
+def load_npz(path: str | os.PathLike) -> Transitions:
+    """Load the plain ``.npz`` format (see the README for the contract)."""
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as error:
+        raise DiagnosisInputError(f"cannot read {path} as an .npz file: {error}") from None
+    with archive:
+        missing = [k for k in NPZ_REQUIRED if k not in archive.files]
+        if missing:
+            raise DiagnosisInputError(f"{path} lacks the array(s) {missing}; an .npz dataset needs "
+                                      f"{list(NPZ_REQUIRED)} and optionally {list(NPZ_OPTIONAL)}")
+        arrays = {k: archive[k] for k in archive.files}
+    state = {k: _as_float(arrays[k], k) for k in NPZ_OPTIONAL if k in arrays}
+    return Transitions(observations=_as_float(arrays["observations"], "observations"),
+                       actions=_as_float(arrays["actions"], "actions"),
+                       next_observations=_as_float(arrays["next_observations"], "next_observations"),
+                       terminations=_as_flags(arrays["terminations"]),
+                       truncations=_as_flags(arrays["truncations"]),
+                       qpos=state.get("qpos"), qvel=state.get("qvel"), origin=str(path))
+
+
+def load_minari(dataset: str | os.PathLike, nq: int | None = None, nv: int | None = None) -> Transitions:
+    """Load a Minari dataset by id or by path. The physics state before each step is read from
+    the step infos' ``state`` (``mjSTATE_FULLPHYSICS``: time, qpos, qvel, ...) when present and
+    ``nq``/``nv`` are known."""
+    import minari
+
+    try:
+        path = Path(dataset)
+        if path.is_dir():
+            data_dir = path / "data" if (path / "data").is_dir() else path
+            loaded = minari.MinariDataset(data_dir)
+        else:
+            loaded = minari.load_dataset(str(dataset))
+    except Exception as error:  # Minari raises several types for a missing or broken dataset
+        raise DiagnosisInputError(f"cannot load Minari dataset {str(dataset)!r}: {error}") from None
+    columns: dict[str, list[np.ndarray]] = {k: [] for k in (*NPZ_REQUIRED, *NPZ_OPTIONAL)}
+    for episode in loaded.iterate_episodes():
+        obs = np.asarray(episode.observations, dtype=float)
+        if obs.ndim != 2:
+            raise DiagnosisInputError(f"Minari dataset {str(dataset)!r}: diagnosis needs flat Box observations, "
+                                      f"got an observation array of shape {obs.shape}")
+        steps = len(episode.actions)
+        columns["observations"].append(obs[:-1])
+        columns["next_observations"].append(obs[1:])
+        columns["actions"].append(np.asarray(episode.actions, dtype=float).reshape(steps, -1))
+        terminations = np.asarray(episode.terminations, dtype=bool)
+        truncations = np.asarray(episode.truncations, dtype=bool).copy()
+        truncations[-1] = not terminations[-1]  # an episode cut short by the recording ends here too
+        columns["terminations"].append(terminations)
+        columns["truncations"].append(truncations)
+        state = (episode.infos or {}).get("state")
+        if state is not None and nq is not None and nv is not None:
+            state = np.asarray(state, dtype=float)
+            before = state[:steps]  # infos hold the reset state then one state per step
+            columns["qpos"].append(before[:, 1:1 + nq])
+            columns["qvel"].append(before[:, 1 + nq:1 + nq + nv])
+    if not columns["actions"]:
+        raise DiagnosisInputError(f"Minari dataset {str(dataset)!r} has no episodes")
+    full_state = len(columns["qpos"]) == len(columns["actions"])
+    return Transitions(
+        observations=np.concatenate(columns["observations"]),
+        actions=np.concatenate(columns["actions"]),
+        next_observations=np.concatenate(columns["next_observations"]),
+        terminations=np.concatenate(columns["terminations"]),
+        truncations=np.concatenate(columns["truncations"]),
+        qpos=np.concatenate(columns["qpos"]) if full_state else None,
+        qvel=np.concatenate(columns["qvel"]) if full_state else None,
+        origin=str(dataset))
+
+
+def load_transitions(dataset: str | os.PathLike, nq: int | None = None, nv: int | None = None) -> Transitions:
+    """Load ``dataset``: a path ending in ``.npz``, or a Minari dataset id or directory."""
+    text = str(dataset)
+    if text.endswith(".npz"):
+        if not Path(text).is_file():
+            raise DiagnosisInputError(f"no such file: {text}")
+        return load_npz(text)
+    return load_minari(dataset, nq=nq, nv=nv)

@@ -1,0 +1,248 @@
+"""The diagnosis loop: residual, trace, add, repeat; then say what is left.
+
+1. Residual of the current hypothesis (one step and ``horizon`` steps open loop) and the noise floor.
+2. Screen every candidate of the library, fit the best few, validate each on held-out episodes.
+3. Add the one that lowers held-out error most (significantly, and by more than the complexity
+   penalty), refit the effects added before it, and repeat until the held-out error reaches the
+   noise floor or nothing helps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from offdyn_bench.diagnose.candidates import Candidate, candidate_library
+from offdyn_bench.diagnose.data import Transitions, load_transitions
+from offdyn_bench.diagnose.residual import NUMERICAL_FLOOR, Hypothesis, ResidualEvaluator, block_improvement_z
+from offdyn_bench.diagnose.search import Fit, fit, screen
+from offdyn_bench.diagnose.source import SourceSimulator
+from offdyn_bench.versions import versions
+
+
+@dataclasses.dataclass(frozen=True)
+class DiagnosisSettings:
+    """Knobs of the loop; the defaults are what the CLI and the tests use."""
+
+    horizon: int = 10
+    """H of the H-step open-loop error."""
+    max_effects: int = 4
+    """At most this many effects are added."""
+    fit_top: int = 4
+    """How many screened candidates are fitted per iteration."""
+    min_relative_gain: float = 0.02
+    """Complexity penalty: an added parameter must cut held-out squared error by this fraction."""
+    min_z: float = 3.0
+    """Significance: the held-out gain must exceed this many block standard errors."""
+    floor_tolerance: float = 0.02
+    """Held-out one-step NRMSE within this (absolute) of the noise floor counts as at the floor."""
+    heldout_fraction: float = 0.3
+    screen_rows: int = 1000
+    fit_rows: int = 2500
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class Errors:
+    one_step_nrmse: float
+    heldout_one_step_nrmse: float
+    horizon_nrmse: float
+    heldout_per_dimension: tuple[float, ...]
+
+    def to_json(self) -> dict[str, float]:
+        return {"one_step_nrmse": self.one_step_nrmse, "heldout_one_step_nrmse": self.heldout_one_step_nrmse,
+                "horizon_nrmse": self.horizon_nrmse}
+
+
+@dataclasses.dataclass(frozen=True)
+class Step:
+    """One iteration: the effect added and the error before and after it."""
+
+    effect: dict[str, Any]
+    interval: tuple[float, float]
+    on_bound: bool
+    before: Errors
+    after: Errors
+    heldout_gain_z: float
+    equivalent_alternatives: tuple[str, ...]
+    screened: tuple[tuple[str, float], ...]
+    refitted: tuple[dict[str, Any], ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"effect": self.effect, "interval": list(self.interval), "on_bound": self.on_bound,
+                "error_before": self.before.to_json(), "error_after": self.after.to_json(),
+                "heldout_gain_z": self.heldout_gain_z,
+                "equivalent_alternatives": list(self.equivalent_alternatives),
+                "screened": [{"candidate": c, "score": s} for c, s in self.screened],
+                "refitted": list(self.refitted)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Diagnosis:
+    """The result of :func:`diagnose`; :meth:`to_json` is the public JSON contract."""
+
+    env_id: str
+    dataset: str
+    transitions: int
+    state_source: str
+    notes: tuple[str, ...]
+    effects_added: tuple[dict[str, Any], ...]
+    error_before: Errors
+    error_after: Errors
+    noise_floor: float
+    noise_floor_per_dimension: tuple[float, ...]
+    unexplained_residual: bool
+    stop_reason: str
+    steps: tuple[Step, ...]
+    calibrated_env: dict[str, Any]
+    dimension_names: tuple[str, ...]
+    timings: dict[str, float]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "env_id": self.env_id,
+            "dataset": self.dataset,
+            "transitions": self.transitions,
+            "state_source": self.state_source,
+            "notes": list(self.notes),
+            "effects_added": [dict(e) for e in self.effects_added],
+            "error_before": self.error_before.to_json(),
+            "error_after": self.error_after.to_json(),
+            "noise_floor": self.noise_floor,
+            "unexplained_residual": self.unexplained_residual,
+            "stop_reason": self.stop_reason,
+            "steps": [s.to_json() for s in self.steps],
+            "calibrated_env": self.calibrated_env,
+            "per_dimension": {
+                "names": list(self.dimension_names),
+                "heldout_nrmse_before": list(self.error_before.heldout_per_dimension),
+                "heldout_nrmse_after": list(self.error_after.heldout_per_dimension),
+                "noise_floor": list(self.noise_floor_per_dimension),
+            },
+            "timings_s": self.timings,
+            "versions": versions(),
+        }
+
+
+def _errors(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> Errors:
+    summary = evaluator.summary(hypothesis)
+    return Errors(one_step_nrmse=summary["train"].nrmse, heldout_one_step_nrmse=summary["heldout"].nrmse,
+                  horizon_nrmse=summary["horizon"].nrmse,
+                  heldout_per_dimension=tuple(float(x) for x in summary["heldout"].per_dimension))
+
+
+def _effect_json(candidate: Candidate, value: float) -> dict[str, Any]:
+    return {"kind": candidate.kind, "target": candidate.target,
+            "value": int(round(value)) if candidate.search == "integer" else float(value)}
+
+
+def _at_floor(heldout_nrmse: float, floor: float, settings: DiagnosisSettings) -> bool:
+    return heldout_nrmse <= floor * 1.1 + settings.floor_tolerance + NUMERICAL_FLOOR
+
+
+def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: DiagnosisSettings | None = None,
+             **env_kwargs: Any) -> Diagnosis:
+    """Find the effects the source ``env_id`` lacks to explain ``data`` (transitions or a path /
+    Minari id), add them, and report the error before and after."""
+    settings = settings or DiagnosisSettings()
+    clock = {"setup": 0.0, "screen": 0.0, "fits": 0.0, "validation": 0.0}
+    started = time.perf_counter()
+    source = SourceSimulator(env_id, **env_kwargs)
+    if not isinstance(data, Transitions):
+        data = load_transitions(data, nq=source.base_model.nq, nv=source.base_model.nv)
+    evaluator = ResidualEvaluator(source, data, horizon=settings.horizon, heldout_fraction=settings.heldout_fraction,
+                                  screen_rows=settings.screen_rows, fit_rows=settings.fit_rows, seed=settings.seed)
+    library = candidate_library(source, with_observation_delay=not evaluator.rebuilt)
+    clock["setup"] = time.perf_counter() - started
+
+    tick = time.perf_counter()
+    hypothesis: Hypothesis = ()
+    chosen: list[tuple[Candidate, float, tuple[float, float], bool]] = []
+    first = _errors(evaluator, hypothesis)
+    floor, floor_dims = evaluator.noise_floor(hypothesis)
+    clock["validation"] += time.perf_counter() - tick
+    current = first
+    steps: list[Step] = []
+    stop_reason = f"reached the limit of {settings.max_effects} effects"
+
+    for _ in range(settings.max_effects):
+        if _at_floor(current.heldout_one_step_nrmse, floor, settings):
+            stop_reason = "held-out error reached the noise floor"
+            break
+        tick = time.perf_counter()
+        scores = [s for s in screen(evaluator, hypothesis, library) if s.reduction > 0]
+        clock["screen"] += time.perf_counter() - tick
+        if not scores:
+            stop_reason = "no candidate reduces the residual"
+            break
+        tick = time.perf_counter()
+        fits = [fit(evaluator, hypothesis, s.candidate, s.start) for s in scores[:settings.fit_top]]
+        clock["fits"] += time.perf_counter() - tick
+
+        tick = time.perf_counter()
+        base, = evaluator.residuals([hypothesis], "heldout")
+        trials = evaluator.residuals([hypothesis + (f.candidate.effect(f.value),) for f in fits], "heldout")
+        base_sse = float(np.sum(base**2))
+        gains = [(base_sse - float(np.sum(r**2))) / max(base_sse, 1e-300) for r in trials]
+        z_scores = [block_improvement_z(base, r) for r in trials]
+        clock["validation"] += time.perf_counter() - tick
+        accepted = [i for i in range(len(fits)) if gains[i] >= settings.min_relative_gain and z_scores[i] >= settings.min_z]
+        if not accepted:
+            stop_reason = "no candidate improves held-out error significantly"
+            break
+        best_gain = max(gains[i] for i in accepted)
+        # Candidates within 1% of the best gain explain the data equally: report the simplest kind.
+        equivalent = [i for i in accepted if best_gain - gains[i] <= 0.01 * best_gain]
+        pick = min(equivalent, key=lambda i: (fits[i].candidate.priority, -gains[i]))
+        chosen_fit: Fit = fits[pick]
+        alternatives = tuple(f"{fits[i].candidate.label} = {fits[i].value:.4g}" for i in equivalent if i != pick)
+
+        hypothesis = hypothesis + (chosen_fit.candidate.effect(chosen_fit.value),)
+        chosen.append((chosen_fit.candidate, chosen_fit.value, chosen_fit.interval, chosen_fit.on_bound))
+        refitted: list[dict[str, Any]] = []
+        if len(chosen) > 1:  # effects found earlier were fitted without this one: refit them
+            tick = time.perf_counter()
+            for j in range(len(chosen) - 1):
+                candidate, value, _, _ = chosen[j]
+                others = tuple(e for k, e in enumerate(hypothesis) if k != j)
+                refit = fit(evaluator, others, candidate, value)
+                chosen[j] = (candidate, refit.value, refit.interval, refit.on_bound)
+                hypothesis = others[:j] + (candidate.effect(refit.value),) + others[j:]
+                refitted.append(_effect_json(candidate, refit.value))
+            clock["fits"] += time.perf_counter() - tick
+
+        tick = time.perf_counter()
+        after = _errors(evaluator, hypothesis)
+        floor, floor_dims = evaluator.noise_floor(hypothesis)
+        clock["validation"] += time.perf_counter() - tick
+        steps.append(Step(effect=_effect_json(chosen_fit.candidate, chosen_fit.value), interval=chosen_fit.interval,
+                          on_bound=chosen_fit.on_bound, before=current, after=after,
+                          heldout_gain_z=float(min(z_scores[pick], 1e6)), equivalent_alternatives=alternatives,
+                          screened=tuple((s.candidate.label, float(s.reduction)) for s in scores[:8]),
+                          refitted=tuple(refitted)))
+        current = after
+    else:
+        if _at_floor(current.heldout_one_step_nrmse, floor, settings):
+            stop_reason = "held-out error reached the noise floor"
+
+    effects_added = tuple({**_effect_json(c, v), "interval": [float(lo), float(hi)], "on_bound": bound}
+                          for c, v, (lo, hi), bound in chosen)
+    clock["total"] = time.perf_counter() - started
+    notes = list(evaluator.notes)
+    for c, v, _, bound in chosen:
+        if bound:
+            notes.append(f"{c.label} = {v:.4g} sits on its bound [{c.low:g}, {c.high:g}]: the true value may lie beyond")
+    return Diagnosis(
+        env_id=env_id, dataset=data.origin, transitions=data.size,
+        state_source="rebuilt from observations" if evaluator.rebuilt else "stored qpos/qvel",
+        notes=tuple(notes), effects_added=effects_added, error_before=first, error_after=current,
+        noise_floor=floor, noise_floor_per_dimension=tuple(float(x) for x in floor_dims),
+        unexplained_residual=not _at_floor(current.heldout_one_step_nrmse, floor, settings),
+        stop_reason=stop_reason, steps=tuple(steps),
+        calibrated_env=source.calibrated_env([c.effect(v) for c, v, _, _ in chosen]),
+        dimension_names=tuple(source.observation_map.names[i] for i in evaluator.dims),
+        timings={k: round(v, 3) for k, v in clock.items()})

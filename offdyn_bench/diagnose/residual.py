@@ -1,0 +1,314 @@
+"""The residual of a hypothesis (the source model plus some effects) on measured transitions.
+
+A hypothesis is a tuple of effects added to the source. Its prediction for a row restarts the
+source model at the recorded state, replays the recorded commands through the hypothesis's action
+channel, steps the physics ``horizon`` control steps open loop and reads the observation through
+the observation map and the hypothesis's observation channel. Residuals are normalized per
+observation dimension by the spread (standard deviation) of that dimension's change over the same
+horizon, so a joint angle and a velocity weigh alike.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+
+from offdyn_bench.diagnose.data import DiagnosisInputError, Transitions
+from offdyn_bench.diagnose.source import SourceSimulator, rebuild_states
+from offdyn_bench.effects import Effect
+from offdyn_bench.effects.channel import ChannelEffect
+from offdyn_bench.effects.model import ModelEffect
+
+Hypothesis = tuple[Effect, ...]
+
+# The simulator restarted exactly reproduces its own steps to ~1e-15: anything below this is numerics.
+NUMERICAL_FLOOR = 1e-6
+
+
+@dataclasses.dataclass(frozen=True)
+class ErrorSummary:
+    """Normalized RMSE of one hypothesis: overall and per observation dimension."""
+
+    nrmse: float
+    per_dimension: np.ndarray
+
+    @staticmethod
+    def of(residual: np.ndarray) -> ErrorSummary:
+        per_dim = np.sqrt(np.mean(residual**2, axis=0)) if len(residual) else np.zeros(residual.shape[1])
+        return ErrorSummary(nrmse=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
+                            per_dimension=per_dim)
+
+
+def _is_stochastic(effect: Effect) -> bool:
+    return effect.kind in ("action_noise", "obs_noise")
+
+
+def physics_key(hypothesis: Hypothesis, rebuilt: bool) -> tuple[Effect, ...]:
+    """The effects that change what the physics does (the rest act on the observation only)."""
+    keep = []
+    for effect in hypothesis:
+        if _is_stochastic(effect):
+            continue
+        if isinstance(effect, ModelEffect) or getattr(effect, "channel", None) == "action":
+            keep.append(effect)
+        elif rebuilt and effect.kind == "obs_bias":  # a biased observation moves the rebuilt state
+            keep.append(effect)
+    return tuple(keep)
+
+
+class ResidualEvaluator:
+    """Predictions and normalized residuals of hypotheses on named subsets of the data."""
+
+    def __init__(self, source: SourceSimulator, data: Transitions, *, horizon: int = 10,
+                 heldout_fraction: float = 0.3, screen_rows: int = 2000, fit_rows: int = 5000,
+                 seed: int = 0) -> None:
+        source.check_data(data)
+        self.source = source
+        self.data = data
+        self.horizon = horizon
+        self.episode = data.episode_index
+        self.step = data.step_in_episode
+        self.episode_start_row = np.arange(data.size) - self.step
+        self.dims = source.observation_map.mapped
+        self.notes: list[str] = []
+        self.rebuilt = not data.has_state
+        if data.has_state:
+            qpos_qvel = np.concatenate([data.qpos, data.qvel], axis=1)  # type: ignore[list-item]
+            usable = np.ones(data.size, dtype=bool)
+        else:
+            qpos_qvel, usable, notes = rebuild_states(source, data.observations)
+            self.notes.append("no stored qpos/qvel: physics state rebuilt from the observations")
+            self.notes.extend(notes)
+        self.usable = usable
+        self.states = source.full_states(qpos_qvel[:, :source.base_model.nq], qpos_qvel[:, source.base_model.nq:])
+        self._rebuilt_cache: dict[tuple[Effect, ...], np.ndarray] = {}
+
+        # Held-out data are whole episodes, so held-out error measures generalization in time too.
+        rng = np.random.default_rng(seed)
+        episodes = np.unique(self.episode)
+        shuffled = rng.permutation(episodes)
+        n_heldout = max(1, int(round(heldout_fraction * len(episodes)))) if len(episodes) > 1 else 0
+        heldout_episodes = set(shuffled[:n_heldout].tolist())
+        is_heldout = np.isin(self.episode, list(heldout_episodes))
+        if n_heldout == 0:  # a single episode: hold out its last part instead
+            is_heldout = np.arange(data.size) >= int(data.size * (1 - heldout_fraction))
+        train = np.flatnonzero(usable & ~is_heldout)
+        heldout = np.flatnonzero(usable & is_heldout)
+        if len(train) < 20 or len(heldout) < 10:
+            raise DiagnosisInputError(f"too few usable transitions to diagnose ({len(train)} training and {len(heldout)} "
+                                      "held-out rows); diagnosis needs a few hundred transitions over several episodes")
+        self.subsets: dict[str, np.ndarray] = {
+            "train": train,
+            "heldout": heldout,
+            "screen": np.sort(rng.choice(train, size=min(screen_rows, len(train)), replace=False)),
+            "fit": np.sort(rng.choice(train, size=min(fit_rows, len(train)), replace=False)),
+        }
+        self.windows = {name: self._window_starts(rows) for name, rows in (("train", train), ("heldout", heldout))}
+        change = data.next_observations[:, self.dims] - data.observations[:, self.dims]
+        self.spread = _safe_spread(change[usable])
+        starts = np.concatenate(list(self.windows.values()))
+        if len(starts):
+            h_change = data.next_observations[starts + horizon - 1][:, self.dims] - data.observations[starts][:, self.dims]
+            self.horizon_spread = _safe_spread(h_change)
+        else:
+            self.horizon_spread = self.spread
+        self._cache: dict[tuple, np.ndarray] = {}
+        self._reference: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._actions_cache: dict[tuple[Effect, ...], np.ndarray] = {}
+
+    def _window_starts(self, rows: np.ndarray) -> np.ndarray:
+        """Non-overlapping windows of ``horizon`` rows inside one episode, all usable at the start."""
+        h = self.horizon
+        candidates = rows[(self.step[rows] % h == 0)]
+        end = candidates + h - 1
+        ok = end < self.data.size
+        candidates, end = candidates[ok], end[ok]
+        return candidates[self.episode[end] == self.episode[candidates]]
+
+    # --- channels -------------------------------------------------------------------------
+    def applied_actions(self, hypothesis: Hypothesis) -> np.ndarray:
+        """The commands after the declared and hypothesized action-channel effects (noise left out)."""
+        effects = tuple(e for e in (*self.source.declared_channel_effects, *hypothesis)
+                        if isinstance(e, ChannelEffect) and e.channel == "action" and not _is_stochastic(e))
+        cached = self._actions_cache.get(effects)
+        if cached is not None:
+            return cached
+        actions = np.array(self.data.actions, dtype=float)
+        for effect in effects:
+            mask = effect.dimension_mask(actions.shape[1], self.source.base_model)
+            if effect.delay_steps:
+                k = int(effect.steps)  # type: ignore[attr-defined]
+                source_row = np.arange(len(actions)) - k
+                valid = source_row >= self.episode_start_row
+                shifted = np.where(valid[:, None], actions[np.maximum(source_row, 0)], 0.0)
+                actions = np.where(mask, shifted, actions)
+            else:
+                actions = effect.transform(actions, mask, None)
+        self._actions_cache[effects] = actions
+        return actions
+
+    def _states_for(self, hypothesis: Hypothesis) -> np.ndarray:
+        if not self.rebuilt:
+            return self.states
+        biases = tuple(e for e in hypothesis if e.kind == "obs_bias")
+        if not biases:
+            return self.states
+        cached = self._rebuilt_cache.get(biases)
+        if cached is None:
+            observations = np.array(self.data.observations, dtype=float)
+            for effect in biases:
+                observations[:, int(effect.target)] -= effect.value  # type: ignore[attr-defined, arg-type]
+            qpos_qvel, _, _ = rebuild_states(self.source, observations)
+            nq = self.source.base_model.nq
+            cached = self.source.full_states(qpos_qvel[:, :nq], qpos_qvel[:, nq:])
+            self._rebuilt_cache[biases] = cached
+        return cached
+
+    def _observe_state_rows(self, rows: np.ndarray, hypothesis: Hypothesis) -> np.ndarray:
+        return self.source.observation_map.observe(self.source.qpos_qvel(self._states_for(hypothesis)[rows]))
+
+    # --- prediction -----------------------------------------------------------------------
+    def predict(self, hypotheses: Sequence[Hypothesis], starts: np.ndarray, horizon: int,
+                cache_key: str | None = None) -> list[np.ndarray]:
+        """Predicted observations (mapped dimensions) ``horizon`` steps after each start row, for
+        each hypothesis; hypotheses with the same physics share one rollout."""
+        keys = [physics_key(h, self.rebuilt) for h in hypotheses]
+        found: dict[tuple[Effect, ...], np.ndarray] = {}
+        todo: dict[tuple[Effect, ...], Hypothesis] = {}
+        for h, key in zip(hypotheses, keys):
+            if cache_key is not None and (key, cache_key, horizon) in self._cache:
+                found[key] = self._cache[(key, cache_key, horizon)]
+            elif key not in todo:
+                todo[key] = h
+        if todo:
+            offsets = np.arange(horizon)
+            models, states, controls, jobs = [], [], [], []
+            for key, h in todo.items():
+                model_effects = tuple(e for e in key if isinstance(e, ModelEffect))
+                state_key = tuple(e for e in key if e.kind == "obs_bias")
+                model = self.source.model_with(model_effects)
+                control = self.applied_actions(h)[starts[:, None] + offsets]
+                # Rows whose model, start state and commands equal a rollout already done reuse it:
+                # a dead zone or a delay changes only some rows' commands.
+                reference = self._reference.get((model_effects, state_key, cache_key, horizon))
+                if reference is not None and reference[0].shape == control.shape:
+                    rows = np.flatnonzero(np.any(reference[0] != control, axis=(1, 2)))
+                else:
+                    reference, rows = None, np.arange(len(starts))
+                jobs.append((key, model_effects, state_key, control, reference, rows))
+                models.extend([model] * len(rows))
+                states.append(self._states_for(h)[starts[rows]])
+                controls.append(control[rows])
+            total = sum(len(job[-1]) for job in jobs)
+            result = (self.source.predict(models, np.concatenate(states), np.concatenate(controls))
+                      if total else None)
+            offset = 0
+            for key, model_effects, state_key, control, reference, rows in jobs:
+                if reference is None:
+                    trajectory = np.empty((len(starts), horizon, self.source.qpos_qvel(self.source.reference_state).size))
+                else:
+                    trajectory = reference[1].copy()
+                if len(rows):
+                    trajectory[rows] = self.source.qpos_qvel(result[offset:offset + len(rows)])  # type: ignore[index]
+                offset += len(rows)
+                found[key] = trajectory
+                ref_key = (model_effects, state_key, cache_key, horizon)
+                if ref_key not in self._reference and cache_key is not None:
+                    self._reference[ref_key] = (control, trajectory)
+                if cache_key is not None:
+                    if len(self._cache) > 64:
+                        self._cache.clear()
+                    self._cache[(key, cache_key, horizon)] = trajectory
+        return [self._observation_channel(h, found[key], starts, horizon) for h, key in zip(hypotheses, keys)]
+
+    def _observation_channel(self, hypothesis: Hypothesis, trajectory: np.ndarray, starts: np.ndarray,
+                             horizon: int) -> np.ndarray:
+        omap = self.source.observation_map
+        predicted = omap.observe(trajectory[:, -1])
+        column = {int(d): c for c, d in enumerate(self.dims)}
+        for effect in (*self.source.declared_channel_effects, *hypothesis):
+            if getattr(effect, "channel", None) != "observation" or _is_stochastic(effect):
+                continue
+            columns = [column[d] for d in np.flatnonzero(effect.dimension_mask(self.source.observation_size)) if d in column]
+            if effect.kind == "obs_bias":
+                predicted[:, columns] += effect.value  # type: ignore[attr-defined]
+            elif effect.kind == "obs_delay":
+                # The recorded observation is the one from `steps` control steps earlier.
+                back = horizon - int(effect.steps)  # type: ignore[attr-defined]
+                if back >= 1:
+                    delayed = omap.observe(trajectory[:, back - 1])
+                else:
+                    rows = np.maximum(starts + back, self.episode_start_row[starts])
+                    delayed = self._observe_state_rows(rows, hypothesis)
+                predicted[:, columns] = delayed[:, columns]
+        return predicted
+
+    def residuals(self, hypotheses: Sequence[Hypothesis], subset: str, horizon: int = 1) -> list[np.ndarray]:
+        """Normalized residuals (prediction minus record) ``[rows, dims]`` for each hypothesis."""
+        starts = self.subsets[subset] if horizon == 1 else self.windows[subset]
+        if len(starts) == 0:
+            return [np.zeros((0, self.dims.size)) for _ in hypotheses]
+        recorded = self.data.next_observations[starts + horizon - 1][:, self.dims]
+        spread = self.spread if horizon == 1 else self.horizon_spread
+        predictions = self.predict(hypotheses, starts, horizon, cache_key=subset)
+        return [(p - recorded) / spread for p in predictions]
+
+    def summary(self, hypothesis: Hypothesis) -> dict[str, ErrorSummary]:
+        """One-step error on training and held-out rows, and H-step error on all windows."""
+        train, = self.residuals([hypothesis], "train")
+        heldout, = self.residuals([hypothesis], "heldout")
+        h_train, = self.residuals([hypothesis], "train", self.horizon)
+        h_heldout, = self.residuals([hypothesis], "heldout", self.horizon)
+        return {"train": ErrorSummary.of(train), "heldout": ErrorSummary.of(heldout),
+                "horizon": ErrorSummary.of(np.concatenate([h_train, h_heldout])),
+                "horizon_heldout": ErrorSummary.of(h_heldout)}
+
+    # --- noise floor ----------------------------------------------------------------------
+    def noise_floor(self, hypothesis: Hypothesis) -> tuple[float, np.ndarray]:
+        """Normalized one-step error a perfect model would still make, and its per-dimension part.
+
+        With stored states, the recorded observation minus the observation read off the stored
+        state (through the hypothesis's observation channel) is the measurement noise itself, and
+        with an exact model the one-step residual is exactly that noise. Without stored states the
+        noise cannot be separated from model error: the floor is then the numerical one.
+        """
+        if self.rebuilt:
+            return NUMERICAL_FLOOR, np.full(self.dims.size, NUMERICAL_FLOOR)
+        rows = self.subsets["train"]
+        predicted = self._observe_state_rows(rows, hypothesis)
+        column = {int(d): c for c, d in enumerate(self.dims)}
+        for effect in (*self.source.declared_channel_effects, *hypothesis):
+            if getattr(effect, "channel", None) != "observation" or _is_stochastic(effect):
+                continue
+            columns = [column[d] for d in np.flatnonzero(effect.dimension_mask(self.source.observation_size)) if d in column]
+            if effect.kind == "obs_bias":
+                predicted[:, columns] += effect.value  # type: ignore[attr-defined]
+            elif effect.kind == "obs_delay":
+                back_rows = np.maximum(rows - int(effect.steps), self.episode_start_row[rows])  # type: ignore[attr-defined]
+                predicted[:, columns] = self._observe_state_rows(back_rows, hypothesis)[:, columns]
+        error = (self.data.observations[rows][:, self.dims] - predicted) / self.spread
+        per_dim = np.std(error, axis=0)
+        floor = float(np.sqrt(np.mean(per_dim**2)))
+        return max(floor, NUMERICAL_FLOOR), per_dim
+
+
+def _safe_spread(change: np.ndarray) -> np.ndarray:
+    spread = np.std(change, axis=0) if len(change) > 1 else np.ones(change.shape[1])
+    return np.where(spread > 1e-12, spread, 1.0)
+
+
+def block_improvement_z(before: np.ndarray, after: np.ndarray, block: int = 50) -> float:
+    """How many standard errors the per-row squared error drops, in blocks of consecutive rows
+    (neighbouring rows are correlated; blocks make the standard error honest)."""
+    diff = np.sum(before**2, axis=1) - np.sum(after**2, axis=1)
+    n_blocks = max(1, len(diff) // block)
+    sums = np.array([chunk.mean() for chunk in np.array_split(diff, n_blocks)])
+    if len(sums) < 2:
+        return float("inf") if sums.mean() > 0 else 0.0
+    se = sums.std(ddof=1) / np.sqrt(len(sums))
+    if se == 0:
+        return float("inf") if sums.mean() > 0 else 0.0
+    return float(sums.mean() / se)
+
