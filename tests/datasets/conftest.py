@@ -1,0 +1,96 @@
+"""Every test gets its own Minari root and remote; nothing touches the internet or ~/.minari."""
+
+from __future__ import annotations
+
+import dataclasses
+import http.server
+import pathlib
+import threading
+from collections.abc import Callable, Iterator
+
+import pytest
+
+import offdyn_bench  # noqa: F401 - registers the task ids
+from offdyn_bench.datasets.build import BuildResult, build_dataset
+from offdyn_bench.datasets.recipes import Recipe, default_recipe
+
+
+@pytest.fixture(autouse=True)
+def isolated_paths(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pathlib.Path:
+    root = tmp_path / "minari"
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
+    # A remote that does not exist: a test that forgets to set its own fails instead of going out.
+    monkeypatch.setenv("OFFDYN_REMOTE", (tmp_path / "no-remote-configured").as_uri())
+    return root
+
+
+def tiny_recipe(task: str = "hopper-gravity-0.5", quality: str = "random", transitions: int = 150,
+                **changes: object) -> Recipe:
+    """The default recipe of ``task``, cut down to a few episodes and two reference episodes."""
+    recipe = default_recipe(task, quality, num_transitions=transitions)
+    return dataclasses.replace(recipe, reference_episodes=2, **changes)  # type: ignore[arg-type]
+
+
+@pytest.fixture(name="tiny_recipe")
+def tiny_recipe_fixture() -> Callable[..., Recipe]:
+    return tiny_recipe
+
+
+@pytest.fixture(scope="session")
+def published(tmp_path_factory: pytest.TempPathFactory) -> tuple[Recipe, BuildResult, pathlib.Path]:
+    """A tiny dataset built once into a remote folder (its archive, entry and datasets.json)."""
+    remote = tmp_path_factory.mktemp("remote")
+    recipe = tiny_recipe()
+    result = build_dataset(recipe, root=tmp_path_factory.mktemp("build-root"), out_dir=remote, install=False)
+    return recipe, result, remote
+
+
+@dataclasses.dataclass
+class LoopbackRemote:
+    """A loopback HTTP server over a folder, with faults a test can switch on."""
+
+    folder: pathlib.Path
+    url: str
+    # path -> how many bytes to send before dropping the connection (Content-Length stays full)
+    cut_after: dict[str, int] = dataclasses.field(default_factory=dict)
+    requests: list[str] = dataclasses.field(default_factory=list)
+
+
+@pytest.fixture
+def loopback_remote(tmp_path: pathlib.Path) -> Iterator[LoopbackRemote]:
+    folder = tmp_path / "served"
+    folder.mkdir()
+    state = LoopbackRemote(folder=folder, url="")
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 - http.server's name
+            rel = self.path.lstrip("/")
+            state.requests.append(rel)
+            path = folder / rel
+            if ".." in rel.split("/") or not path.is_file():
+                self.send_error(404)
+                return
+            body = path.read_bytes()
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            if rel in state.cut_after:
+                self.wfile.write(body[: state.cut_after.pop(rel)])
+                self.wfile.flush()
+                self.close_connection = True
+                return
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    state.url = f"http://127.0.0.1:{server.server_address[1]}"
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield state
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join(timeout=5)
