@@ -1,11 +1,11 @@
 """Steps per second of registered envs against the vanilla Gymnasium v5 env, side by side.
 
-    .venv/bin/python benchmarks/env_step_rate.py [--steps 20000] [--rounds 5]
+    .venv/bin/python benchmarks/env_step_rate.py [--steps 2000] [--rounds 40]
 
 Every env runs the same pre-drawn actions with ``terminate_when_unhealthy=False`` (so reset
-frequency does not depend on the dynamics), in interleaved rounds so drifts in machine load hit
-all envs alike. The figure is the median over rounds of steps/s, reported as a ratio to the
-vanilla env measured in the same run.
+frequency does not depend on the dynamics), in many short interleaved rounds so drifts in machine
+load hit all envs alike. The figure is the median over rounds of steps/s, reported as a ratio to
+the vanilla env measured in the same run.
 """
 
 from __future__ import annotations
@@ -61,8 +61,8 @@ def measure(robot: str, steps: int, rounds: int) -> list[tuple[str, float, float
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--steps", type=int, default=20000)
-    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--rounds", type=int, default=40)
     parser.add_argument("--robots", nargs="*", default=list(ROBOTS))
     args = parser.parse_args()
     print("| robot | env | steps/s | ratio to vanilla |")
