@@ -14,6 +14,9 @@ app.add_typer(tasks_app, name="tasks")
 from offdyn_bench.datasets.cli import datasets_app  # noqa: E402
 
 app.add_typer(datasets_app, name="datasets")
+from baselines.cli import train_command  # noqa: E402
+
+app.command("train")(train_command)
 
 
 @app.command("demo")

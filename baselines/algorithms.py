@@ -1,0 +1,123 @@
+"""The algorithm registry: CLI name -> default config, builder, and what it needs.
+
+Also turns ``key=value`` overrides (``sac.batch_size=64``, ``target_data=online``) into a config,
+with errors that name the valid fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable, Mapping
+from types import MappingProxyType
+from typing import Any
+
+from baselines import cql, dap, darc, h2o, online_sac
+from baselines.method import Method, MethodContext
+from offdyn_bench.errors import InvalidParameterError, UnknownNameError
+
+
+@dataclasses.dataclass(frozen=True)
+class Algorithm:
+    name: str
+    description: str
+    default_config: Callable[[], Any]
+    build: Callable[[Any, MethodContext], Method]
+    needs_dataset: bool
+    track: str
+    """"online" (steps an environment), "offline-target" or "online-target"."""
+
+
+ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType({a.name: a for a in [
+    Algorithm("sac-source", "RL on source: SAC in the source simulator (behaviour policy for datasets)",
+              online_sac.Config, online_sac.build_source, needs_dataset=False, track="reference"),
+    Algorithm("sac-target", "RL on target: SAC in the target (the oracle for normalized scores)",
+              online_sac.Config, online_sac.build_target, needs_dataset=False, track="reference"),
+    Algorithm("cql", "CQL on the target dataset only (offline)",
+              cql.Config, cql.build, needs_dataset=True, track="offline-target"),
+    Algorithm("darc", "DARC with the fixed target dataset (offline-target)",
+              darc.Config, darc.build, needs_dataset=True, track="offline-target"),
+    Algorithm("darc-online", "DARC as published: one target step per ten source steps (online-target)",
+              lambda: darc.Config(target_data="online"), darc.build, needs_dataset=False, track="online-target"),
+    Algorithm("h2o", "H2O: dynamics-aware hybrid offline (target dataset) and online (source) RL",
+              h2o.Config, h2o.build, needs_dataset=True, track="offline-target"),
+    Algorithm("dap", "DAP: dual action policy",
+              dap.Config, dap.build, needs_dataset=True, track="offline-target"),
+    Algorithm("dap-u", "DAP+U: DAP with uncertainty-based robust action resampling",
+              dap.dap_u_config, dap.build, needs_dataset=True, track="offline-target"),
+]})
+
+
+def get_algorithm(name: str) -> Algorithm:
+    if name not in ALGORITHMS:
+        raise UnknownNameError("algorithm", name, ALGORITHMS)
+    return ALGORITHMS[name]
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """A JSON-ready dict (tuples become lists)."""
+    return json.loads(json.dumps(dataclasses.asdict(config)))
+
+
+def apply_overrides(config: Any, overrides: Mapping[str, str], algo: str) -> Any:
+    """Set ``a.b=value`` fields of a (nested) config dataclass; values are parsed as JSON when they
+    parse, else taken as strings, then checked against the field's type."""
+    for key, raw in overrides.items():
+        owner, path = config, key.split(".")
+        for part in path[:-1]:
+            owner = _field_value(owner, part, key, algo)
+            if not dataclasses.is_dataclass(owner):
+                raise InvalidParameterError(algo, key, raw, f"{part!r} is not a group of settings")
+        name = path[-1]
+        current = _field_value(owner, name, key, algo)
+        setattr(owner, name, _parse(raw, current, key, algo))
+    return config
+
+
+def _field_value(owner: Any, name: str, key: str, algo: str) -> Any:
+    names = [f.name for f in dataclasses.fields(owner)]
+    if name not in names:
+        prefix = key.rsplit(".", 1)[0] + "." if "." in key else ""
+        raise UnknownNameError(f"setting of {algo}", key, [prefix + n for n in names])
+    return getattr(owner, name)
+
+
+def _parse(raw: str, current: Any, key: str, algo: str) -> Any:
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    if isinstance(current, bool):
+        ok = isinstance(value, bool)
+    elif isinstance(current, int):
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif isinstance(current, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif isinstance(current, tuple):
+        ok = isinstance(value, list)
+        value = tuple(value) if ok else value
+    elif current is None:
+        ok = value is None or isinstance(value, (int, float))
+    else:
+        ok = isinstance(value, type(current))
+    if not ok:
+        raise InvalidParameterError(algo, key, raw, f"a value like {json.dumps(current)!s}")
+    return value
+
+
+def config_from_dict(algo: str, data: Mapping[str, Any]) -> Any:
+    """Rebuild a config from :func:`config_to_dict` output (used when loading a trained policy)."""
+    config = get_algorithm(algo).default_config()
+    flat: dict[str, str] = {}
+
+    def walk(prefix: str, value: Any) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(f"{prefix}{k}.", v)
+        else:
+            flat[prefix[:-1]] = json.dumps(value)
+
+    walk("", dict(data))
+    return apply_overrides(config, flat, algo)
+

@@ -1,0 +1,50 @@
+"""``offdyn-bench train``: the command line of the baselines."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from baselines.algorithms import ALGORITHMS
+from offdyn_bench.errors import OffdynError
+
+
+def train_command(
+    algo: str = typer.Argument(..., help="Algorithm: " + ", ".join(ALGORITHMS) + "."),
+    task: str = typer.Option(..., "--task", help="Task pair, e.g. hopper-gravity-0.5."),
+    steps: int = typer.Option(..., "--steps", help="Environment steps (gradient updates for offline cql)."),
+    out: Path = typer.Option(..., "--out", help="Run folder; run the same command again to resume it."),
+    seed: int = typer.Option(0, "--seed", help="First training seed."),
+    n_seeds: int = typer.Option(1, "--n-seeds", help="Seeds seed..seed+n-1, trained together in one process."),
+    dataset: str | None = typer.Option(None, "--dataset",
+                                       help="Target dataset: collect:<random|run folder>:<N>, an .npz path, "
+                                            "or a Minari id."),
+    overrides: list[str] = typer.Option([], "--set", help="Config override key=value, e.g. sac.batch_size=128 "
+                                                          "(repeatable)."),
+    eval_every: int | None = typer.Option(None, "--eval-every", help="Steps between target evaluations "
+                                                                     "(default steps/20)."),
+    eval_episodes: int = typer.Option(10, "--eval-episodes", help="Target episodes per evaluation."),
+    checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Default steps/10."),
+    threads: int = typer.Option(1, "--threads", help="torch threads (1: best on a small shared CPU)."),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
+) -> None:
+    """Train a reference baseline and write config.json, metrics.jsonl, result.json and checkpoints."""
+    from baselines.train import train
+
+    parsed = {}
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            typer.echo(f"error: --set expects key=value, got {item!r}", err=True)
+            raise typer.Exit(2)
+        parsed[key.strip()] = value.strip()
+    try:
+        result = train(algo, task, steps=steps, out=out, seed=seed, n_seeds=n_seeds, dataset=dataset,
+                       overrides=parsed, eval_every=eval_every, eval_episodes=eval_episodes,
+                       checkpoint_every=checkpoint_every, threads=threads, progress=progress)
+    except OffdynError as error:
+        typer.echo(f"error: {error}", err=True)
+        raise typer.Exit(2) from None
+    if result is not None:
+        typer.echo(f"mean target return {result['mean_return']:.1f}; wrote {out}/result.json")

@@ -1,0 +1,96 @@
+"""CQL (Kumar et al. 2020): offline SAC on the target dataset only, with the conservative penalty.
+
+The CQL(H) penalty per critic, with the importance-sampled log-sum-exp of the original:
+
+    alpha * [ log sum_j exp(Q(s, a_j) - log mu(a_j)) - Q(s, a_data) ],
+
+over ``n_action_samples`` actions each from the uniform distribution, the policy at s and the
+policy at s' (``mu`` their densities). ``alpha`` (min-Q weight) is fixed at 2.0 with no Lagrange
+tuning, as the H2O paper's CQL baseline for MuJoCo (Appendix B.1). No environment is stepped:
+one training step is one gradient update.
+
+Composition with the core: an ``extra_loss``. Chosen: ``n_action_samples`` = 10 (CQL's default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+from baselines.buffers import DatasetSampler
+from baselines.method import MethodContext, require_target_data
+from baselines.sac import Batch, ExtraCriticLoss, Metrics, QFunction, SACAgent, SACConfig, sac_update
+
+
+@dataclasses.dataclass
+class Config:
+    sac: SACConfig = dataclasses.field(default_factory=SACConfig)
+    min_q_weight: float = 2.0
+    n_action_samples: int = 10
+
+
+class CQL:
+    interaction = "none"
+    target_step_every = None
+
+    def __init__(self, config: Config, context: MethodContext) -> None:
+        self.config = config
+        self.agent = SACAgent(context.observation_dim, context.action_dim, context.seeds, config.sac)
+        self.data = DatasetSampler(require_target_data(context, "cql"), len(context.seeds), context.stream("target"))
+        self.uniform_generator = torch.Generator().manual_seed(context.stream("cql-uniform"))
+
+    def explore(self, observations, step):
+        raise RuntimeError("CQL is offline: it takes no environment steps")
+
+    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.agent.mean_actions(observations[:, None])[:, 0]
+
+    def record(self, *transition) -> None:
+        raise RuntimeError("CQL is offline: it takes no environment steps")
+
+    record_target = record
+
+    def conservative_penalty(self, batch: Batch) -> ExtraCriticLoss:
+        n, agent = self.config.n_action_samples, self.agent
+        seeds, size, _ = batch.observations.shape
+        action_dim = agent.action_dim
+        obs = batch.observations.repeat_interleave(n, dim=1)
+        next_obs = batch.next_observations.repeat_interleave(n, dim=1)
+        with torch.no_grad():
+            uniform = torch.rand((seeds, size * n, action_dim), generator=self.uniform_generator) * 2 - 1
+            policy_actions, policy_log_probs = agent.sample_actions(obs)
+            next_actions, next_log_probs = agent.sample_actions(next_obs)
+        uniform_log_density = -action_dim * math.log(2.0)
+
+        def penalty(q: QFunction) -> tuple[torch.Tensor, Metrics]:
+            def per_state(values: torch.Tensor) -> torch.Tensor:  # [S, 2, B*n] -> [S, 2, B, n]
+                return values.view(seeds, 2, size, n)
+
+            candidates = torch.cat([
+                per_state(q(obs, uniform)) - uniform_log_density,
+                per_state(q(obs, policy_actions) - policy_log_probs[:, None]),
+                per_state(q(obs, next_actions) - next_log_probs[:, None]),
+            ], dim=-1)
+            gap = torch.logsumexp(candidates, dim=-1).mean(dim=2) - q(batch.observations, batch.actions).mean(dim=2)
+            return self.config.min_q_weight * gap.sum(dim=1), {"cql/gap": gap.detach().mean(dim=1)}
+
+        return penalty
+
+    def train_step(self, step: int) -> Metrics:
+        batch = self.data.sample(self.config.sac.batch_size)
+        return sac_update(self.agent, batch, extra_loss=self.conservative_penalty(batch))
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return (self.agent.state_dict() | self.data.state_dict("target")
+                | {"uniform_generator": self.uniform_generator.get_state()})
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        self.agent.load_state_dict(state)
+        self.data.load_state_dict(state, "target")
+        self.uniform_generator.set_state(state["uniform_generator"])
+
+
+def build(config: Config, context: MethodContext) -> CQL:
+    return CQL(config, context)

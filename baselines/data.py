@@ -1,0 +1,204 @@
+"""Target datasets for the offline-target methods, behind one loader (:func:`load_dataset`).
+
+A dataset spec is one of:
+
+* ``collect:<policy>:<N>`` -- collected on the spot in the task's target: ``N`` transitions by
+  ``<policy>``, which is ``random`` (uniform actions) or a training run folder (its latest
+  checkpoint's deployed action, seed 0, plus Gaussian noise of std 0.1 in [-1, 1] action units so
+  the data is sub-optimal and covers more than one trajectory, as a behaviour policy's would);
+* a path to an ``.npz`` holding the arrays of :class:`TransitionDataset`;
+* a Minari dataset id (``offdyn/hopper-gravity-0p5/source-policy-v0``), loaded with
+  ``minari.load_dataset`` when it is installed locally.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+
+from baselines.sac import Batch
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.tasks import TaskPair
+
+ARRAYS = ("observations", "actions", "rewards", "next_observations", "terminations", "truncations")
+BEHAVIOUR_NOISE_STD = 0.1
+Policy = Callable[[np.ndarray], np.ndarray]
+"""Observation (environment units) -> action (environment units)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TransitionDataset:
+    """Transitions as numpy arrays, actions in environment units; row i is one step."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    next_observations: np.ndarray
+    terminations: np.ndarray
+    truncations: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.rewards)
+        for name in ARRAYS:
+            if len(getattr(self, name)) != n:
+                raise OffdynError(f"dataset arrays differ in length: {name} has {len(getattr(self, name))} "
+                                  f"rows, rewards has {n}")
+
+    def __len__(self) -> int:
+        return len(self.rewards)
+
+    def save_npz(self, path: str | Path) -> None:
+        np.savez(path, **{name: getattr(self, name) for name in ARRAYS})
+
+    @classmethod
+    def from_npz(cls, path: str | Path) -> TransitionDataset:
+        with np.load(path) as data:
+            missing = [name for name in ARRAYS if name not in data]
+            if missing:
+                raise OffdynError(f"dataset {str(path)!r} lacks arrays {missing}; expected {list(ARRAYS)}")
+            return cls(**{name: data[name] for name in ARRAYS})
+
+    def sha256(self) -> str:
+        digest = hashlib.sha256()
+        for name in ARRAYS:
+            digest.update(np.ascontiguousarray(getattr(self, name)).tobytes())
+        return digest.hexdigest()
+
+    def check_spaces(self, observation_space: gymnasium.Space, action_space: gymnasium.Space, task: str) -> None:
+        """Raise if the arrays do not fit the task's spaces."""
+        for name, space in (("observations", observation_space), ("next_observations", observation_space),
+                            ("actions", action_space)):
+            shape = getattr(self, name).shape[1:]
+            if shape != space.shape:
+                raise OffdynError(f"dataset {name} have shape {shape} per step but task {task!r} expects "
+                                  f"{space.shape}; was the dataset collected on another robot?")
+        if len(self) == 0:
+            raise OffdynError("the dataset is empty")
+        low, high = action_space.low, action_space.high
+        if np.any(self.actions < low - 1e-6) or np.any(self.actions > high + 1e-6):
+            raise OffdynError(f"dataset actions leave task {task!r}'s action bounds [{low}, {high}]")
+
+    def to_batch(self, action_space: gymnasium.spaces.Box) -> Batch:
+        """Float tensors with actions scaled to [-1, 1], for the samplers."""
+        def tensor(x: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(x, dtype=np.float32))
+
+        scaled = 2.0 * (self.actions - action_space.low) / (action_space.high - action_space.low) - 1.0
+        return Batch(tensor(self.observations), tensor(scaled), tensor(self.rewards),
+                     tensor(self.next_observations), tensor(self.terminations))
+
+
+def collect_target_dataset(task: TaskPair, policy: Policy | str, n_transitions: int, seed: int
+                           ) -> TransitionDataset:
+    """``n_transitions`` steps of ``policy`` in ``task``'s target (episode k reset with seed
+    ``[seed, k]``). ``policy`` is a callable, ``"random"`` or a training run folder."""
+    if n_transitions <= 0:
+        raise OffdynError(f"cannot collect {n_transitions} transitions; expected a positive number")
+    env = task.make("target")
+    rng = np.random.default_rng(seed)
+    act = _resolve_policy(policy, env.action_space, rng)
+    rows: dict[str, list[Any]] = {name: [] for name in ARRAYS}
+    episode = 0
+    obs, _ = env.reset(seed=_episode_seed(seed, episode))
+    while len(rows["rewards"]) < n_transitions:
+        action = np.asarray(act(obs), dtype=env.action_space.dtype)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        for name, value in zip(ARRAYS, (obs, action, reward, next_obs, terminated, truncated)):
+            rows[name].append(value)
+        obs = next_obs
+        if terminated or truncated:
+            episode += 1
+            obs, _ = env.reset(seed=_episode_seed(seed, episode))
+    # The last row ends the dataset mid-episode: mark it truncated so nothing bootstraps across it.
+    rows["truncations"][-1] = True
+    env.close()
+    return TransitionDataset(
+        observations=np.asarray(rows["observations"], dtype=np.float64),
+        actions=np.asarray(rows["actions"], dtype=np.float32),
+        rewards=np.asarray(rows["rewards"], dtype=np.float64),
+        next_observations=np.asarray(rows["next_observations"], dtype=np.float64),
+        terminations=np.asarray(rows["terminations"], dtype=bool),
+        truncations=np.asarray(rows["truncations"], dtype=bool))
+
+
+def _episode_seed(seed: int, episode: int) -> int:
+    return int(np.random.SeedSequence([int(seed), episode]).generate_state(1)[0])
+
+
+def _resolve_policy(policy: Policy | str, action_space: gymnasium.spaces.Box, rng: np.random.Generator) -> Policy:
+    if callable(policy):
+        return policy
+    if policy == "random":
+        return lambda obs: rng.uniform(action_space.low, action_space.high)
+    run_dir = Path(policy)
+    if not run_dir.is_dir():
+        raise OffdynError(f"unknown behaviour policy {policy!r}; expected 'random' or a training run folder "
+                          "(one holding config.json and checkpoints/)")
+    from baselines.train import load_trained_policy
+
+    deployed = load_trained_policy(run_dir)
+    low, high = action_space.low, action_space.high
+
+    def noisy(obs: np.ndarray) -> np.ndarray:
+        scaled = 2.0 * (deployed(obs) - low) / (high - low) - 1.0
+        scaled = np.clip(scaled + rng.normal(0.0, BEHAVIOUR_NOISE_STD, size=scaled.shape), -1.0, 1.0)
+        return low + (scaled + 1.0) * 0.5 * (high - low)
+
+    return noisy
+
+
+def load_dataset(spec: str, task: TaskPair, seed: int = 0) -> tuple[TransitionDataset, dict[str, Any]]:
+    """The dataset named by ``spec`` (see the module docstring) and its provenance, checked against
+    ``task``'s spaces. The one place dataset kinds are told apart."""
+    if spec.startswith("collect:"):
+        parts = spec.split(":")
+        policy, count = ":".join(parts[1:-1]), parts[-1]
+        if len(parts) < 3 or not policy or not count.isdigit():
+            raise OffdynError(f"bad dataset spec {spec!r}; expected collect:<policy>:<N>, e.g. collect:random:5000 "
+                              "or collect:runs/sac-source:5000")
+        dataset = collect_target_dataset(task, policy, int(count), seed)
+        provenance = {"kind": "collected", "policy": policy, "n_transitions": int(count), "seed": seed,
+                      "behaviour_noise_std": None if policy == "random" else BEHAVIOUR_NOISE_STD}
+    elif spec.endswith(".npz"):
+        if not Path(spec).is_file():
+            raise OffdynError(f"dataset file {spec!r} does not exist")
+        dataset = TransitionDataset.from_npz(spec)
+        provenance = {"kind": "npz", "path": str(Path(spec).resolve())}
+    elif spec.count("/") >= 2:
+        dataset, provenance = _load_minari(spec)
+    else:
+        raise OffdynError(f"unrecognised dataset {spec!r}; expected collect:<policy>:<N>, a path to an .npz "
+                          "file, or a Minari dataset id like offdyn/hopper-gravity-0p5/source-policy-v0")
+    env = task.make("target")
+    dataset.check_spaces(env.observation_space, env.action_space, task.name)
+    env.close()
+    provenance |= {"spec": spec, "task_version": task.version, "size": len(dataset), "sha256": dataset.sha256()}
+    return dataset, provenance
+
+
+def _load_minari(dataset_id: str) -> tuple[TransitionDataset, dict[str, Any]]:
+    try:
+        import minari
+
+        data = minari.load_dataset(dataset_id)
+    except Exception as error:  # minari raises several kinds for a missing dataset
+        raise OffdynError(f"cannot load Minari dataset {dataset_id!r}: {error}") from error
+    rows: dict[str, list[np.ndarray]] = {name: [] for name in ARRAYS}
+    for episode in data.iterate_episodes():
+        obs = np.asarray(episode.observations)
+        rows["observations"].append(obs[:-1])
+        rows["next_observations"].append(obs[1:])
+        rows["actions"].append(np.asarray(episode.actions))
+        rows["rewards"].append(np.asarray(episode.rewards))
+        rows["terminations"].append(np.asarray(episode.terminations, dtype=bool))
+        rows["truncations"].append(np.asarray(episode.truncations, dtype=bool))
+    dataset = TransitionDataset(**{name: np.concatenate(rows[name]) for name in ARRAYS})
+    return dataset, {"kind": "minari", "dataset_id": dataset_id,
+                     "minari_version": getattr(minari, "__version__", None)}

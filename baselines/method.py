@@ -1,0 +1,81 @@
+"""What the training loop needs from a method, and what it hands one.
+
+The loop (:mod:`baselines.train`) owns the environments, evaluation and checkpoints; a method owns
+its networks and buffers. All tensors are ``[seeds, ...]`` and actions are in [-1, 1].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Literal, Protocol
+
+import torch
+
+from baselines.sac import Batch, Metrics
+
+Interaction = Literal["source", "target", "none"]
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodContext:
+    observation_dim: int
+    action_dim: int
+    seeds: tuple[int, ...]
+    target_data: Batch | None = None
+    """The fixed target dataset (actions scaled to [-1, 1]), shared by all seeds; None if unused."""
+
+    def stream(self, name: str) -> int:
+        """A seed for one random stream (buffer sampling, ...): the same name gives the same stream
+        in every method, so e.g. DARC with a zero reward correction samples exactly like SAC."""
+        return (int(self.seeds[0]) * 1_000_003 + sum(ord(c) * 31 ** i for i, c in enumerate(name))) % 2**62
+
+
+class Method(Protocol):
+    """Anything the training loop can train."""
+
+    interaction: Interaction
+    """The environment stepped every training step: "source", "target" or "none" (offline)."""
+    target_step_every: int | None
+    """Online-target methods: one target-environment step per this many steps (else None)."""
+
+    def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(action sent to the environment, action stored in the buffer), both ``[S, A]`` or wider."""
+        ...
+
+    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
+        """The deterministic action used in the target environment, ``[S, A]``."""
+        ...
+
+    def record(self, observations: torch.Tensor, stored_actions: torch.Tensor, rewards: torch.Tensor,
+               next_observations: torch.Tensor, terminations: torch.Tensor) -> None:
+        """Store one transition per seed from the interaction environment."""
+        ...
+
+    def record_target(self, observations: torch.Tensor, stored_actions: torch.Tensor, rewards: torch.Tensor,
+                      next_observations: torch.Tensor, terminations: torch.Tensor) -> None:
+        """Store one online target transition per seed (online-target methods only)."""
+        ...
+
+    def train_step(self, step: int) -> Metrics:
+        ...
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        ...
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        ...
+
+
+def uniform_actions(n_seeds: int, action_dim: int, generator: torch.Generator) -> torch.Tensor:
+    return torch.rand((n_seeds, action_dim), generator=generator) * 2 - 1
+
+
+def require_target_data(context: MethodContext, algo: str) -> Batch:
+    if context.target_data is None:
+        raise ValueError(f"{algo} needs a target dataset")
+    return context.target_data
+
+
+def seeds_tuple(seeds: Sequence[int]) -> tuple[int, ...]:
+    return tuple(int(s) for s in seeds)

@@ -1,0 +1,74 @@
+"""``sac-source`` ("RL on source") and ``sac-target`` ("RL on target"): plain SAC in one environment.
+
+``sac-source`` trains in the source simulator and is evaluated in the target: the lower reference
+point, and the behaviour policy that collects target datasets (DAP Section 5.1). ``sac-target``
+trains in the target itself: the oracle, and the reference for normalized scores.
+
+Chosen where the papers are silent: ``random_steps`` uniform-random actions before learning starts
+(5000, the usual SAC warm-up); one gradient update per environment step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from baselines.buffers import ReplayBuffer
+from baselines.method import Interaction, MethodContext, uniform_actions
+from baselines.sac import Metrics, SACAgent, SACConfig, sac_update
+
+
+@dataclasses.dataclass
+class Config:
+    sac: SACConfig = dataclasses.field(default_factory=SACConfig)
+    buffer_size: int = 1_000_000
+    random_steps: int = 5_000
+    """Uniform-random actions for the first steps; updates start after them."""
+
+
+class OnlineSAC:
+    target_step_every = None
+
+    def __init__(self, config: Config, context: MethodContext, interaction: Interaction) -> None:
+        self.config, self.interaction = config, interaction
+        self.agent = SACAgent(context.observation_dim, context.action_dim, context.seeds, config.sac)
+        self.buffer = ReplayBuffer(len(context.seeds), config.buffer_size, context.observation_dim,
+                                   context.action_dim, context.stream("buffer"))
+
+    def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if step < self.config.random_steps:
+            actions = uniform_actions(self.agent.n_seeds, self.agent.action_dim, self.agent.generator)
+        else:
+            with torch.no_grad():
+                actions = self.agent.sample_actions(observations[:, None])[0][:, 0]
+        return actions, actions
+
+    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
+        return self.agent.mean_actions(observations[:, None])[:, 0]
+
+    def record(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
+        self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)
+
+    def record_target(self, *transition) -> None:
+        raise RuntimeError("plain SAC takes no online target transitions")
+
+    def train_step(self, step: int) -> Metrics:
+        if step < self.config.random_steps:
+            return {}
+        return sac_update(self.agent, self.buffer.sample(self.config.sac.batch_size))
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return self.agent.state_dict() | self.buffer.state_dict("buffer")
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        self.agent.load_state_dict(state)
+        self.buffer.load_state_dict(state, "buffer")
+
+
+def build_source(config: Config, context: MethodContext) -> OnlineSAC:
+    return OnlineSAC(config, context, "source")
+
+
+def build_target(config: Config, context: MethodContext) -> OnlineSAC:
+    return OnlineSAC(config, context, "target")

@@ -1,0 +1,246 @@
+"""The one SAC core every baseline composes.
+
+Soft Actor-Critic (Haarnoja et al. 2018) with twin critics and clipped double-Q targets, a
+tanh-squashed Gaussian actor, automatic entropy tuning and Polyak-averaged target critics,
+written as small updates that take a batch and return metrics (jaxrl style):
+
+* :func:`critic_update` -- the soft Bellman update, with three hooks the methods use:
+  ``reward_correction`` (DARC, DAP add the classifier reward), ``sample_weights`` (H2O's
+  dynamics-ratio importance weights) and ``extra_loss`` (the H2O and CQL value penalties);
+* :func:`actor_update` -- the policy step, which also tunes the temperature;
+* :func:`update_targets` -- Polyak averaging;
+* :func:`sac_update` -- the three in order.
+
+Everything is batched over training seeds: tensors are ``[seeds, batch, ...]``, networks have a
+leading member dimension (see :mod:`baselines.networks`), and losses are summed over seeds so the
+seeds stay independent (each seed's parameters only receive gradients from its own loss).
+Actions live in ``[-1, 1]``; the training loop maps them to the environment's bounds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import torch
+
+from baselines.networks import Params, detached, init_mlp, mlp
+
+
+@dataclasses.dataclass
+class SACConfig:
+    """SAC hyperparameters (Haarnoja et al. 2018, Table 1, with the automatic temperature of the
+    follow-up paper); the same values DARC, H2O (Table 3) and DAP use."""
+
+    hidden_sizes: tuple[int, ...] = (256, 256)
+    """Hidden layer widths of the actor and of each critic."""
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4
+    temperature_lr: float = 3e-4
+    discount: float = 0.99
+    target_update_rate: float = 0.005
+    """Polyak rate tau of the target critics."""
+    batch_size: int = 256
+    initial_temperature: float = 1.0
+    target_entropy: float | None = None
+    """None: minus the action dimension (the usual heuristic)."""
+    log_std_min: float = -20.0
+    log_std_max: float = 2.0
+
+
+class Batch(NamedTuple):
+    """A batch of transitions, ``[seeds, batch, ...]``; actions in [-1, 1]."""
+
+    observations: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_observations: torch.Tensor
+    terminations: torch.Tensor  # 1.0 where the episode ended in a terminal state (no bootstrap)
+
+
+Metrics = dict[str, torch.Tensor]
+QFunction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+ExtraCriticLoss = Callable[[QFunction], tuple[torch.Tensor, Metrics]]
+"""Given ``q(observations, actions) -> [seeds, 2, batch]`` (live critic parameters), return a
+per-seed loss ``[seeds]`` to add to the critic loss, and metrics."""
+
+
+def seed_generator(seed: int) -> torch.Generator:
+    return torch.Generator().manual_seed(int(seed))
+
+
+class SACAgent:
+    """Parameters, optimizers and random stream of SAC for ``len(seeds)`` independent seeds.
+
+    Each seed's networks are initialised from that seed alone, so seed 3 starts from the same
+    weights whether it trains alone or next to others.
+    """
+
+    def __init__(self, observation_dim: int, action_dim: int, seeds: Sequence[int],
+                 config: SACConfig | None = None) -> None:
+        self.config = config = config or SACConfig()
+        self.observation_dim, self.action_dim = observation_dim, action_dim
+        self.n_seeds = len(seeds)
+        hidden = list(config.hidden_sizes)
+        inits = [seed_generator(s) for s in seeds]
+        self.actor = _stack([init_mlp([g], [observation_dim, *hidden, 2 * action_dim]) for g in inits])
+        # Critic members are ordered (seed, critic): member 2*s + c.
+        self.critic = _stack([init_mlp([g, g], [observation_dim + action_dim, *hidden, 1]) for g in inits])
+        self.critic_target = [p.detach().clone() for p in self.critic]
+        self.log_temperature = torch.full((self.n_seeds,), math.log(config.initial_temperature),
+                                          requires_grad=True)
+        self.target_entropy = -float(action_dim) if config.target_entropy is None else config.target_entropy
+        self.actor_optimizer = torch.optim.Adam(self.actor, lr=config.actor_lr, foreach=True)
+        self.critic_optimizer = torch.optim.Adam(self.critic, lr=config.critic_lr, foreach=True)
+        self.temperature_optimizer = torch.optim.Adam([self.log_temperature], lr=config.temperature_lr,
+                                                      foreach=True)
+        # Policy noise; other components (buffers, classifiers) own their streams, so adding a
+        # component never shifts this one.
+        self.generator = seed_generator(seeds[0] * 7919 + 1)
+
+    @property
+    def temperature(self) -> torch.Tensor:
+        return self.log_temperature.detach().exp()
+
+    # --- the policy ------------------------------------------------------------------------
+
+    def _mean_log_std(self, observations: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = mlp(params, observations).chunk(2, dim=-1)
+        return mean, log_std.clamp(self.config.log_std_min, self.config.log_std_max)
+
+    def sample_actions(self, observations: torch.Tensor, params: Params | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reparameterised tanh-Gaussian sample and its log-probability, ``[S, B, A]``, ``[S, B]``."""
+        mean, log_std = self._mean_log_std(observations, self.actor if params is None else params)
+        noise = torch.randn(mean.shape, generator=self.generator)
+        pre_tanh = mean + log_std.exp() * noise
+        gaussian_log_prob = (-0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
+        # log(1 - tanh(u)^2), written stably.
+        squash = 2.0 * (math.log(2.0) - pre_tanh - torch.nn.functional.softplus(-2.0 * pre_tanh))
+        return torch.tanh(pre_tanh), gaussian_log_prob - squash.sum(-1)
+
+    def mean_actions(self, observations: torch.Tensor) -> torch.Tensor:
+        """The deterministic action used in evaluation: tanh of the Gaussian mean."""
+        with torch.no_grad():
+            return torch.tanh(self._mean_log_std(observations, self.actor)[0])
+
+    # --- the critics -----------------------------------------------------------------------
+
+    def q_values(self, observations: torch.Tensor, actions: torch.Tensor,
+                 params: Params | None = None) -> torch.Tensor:
+        """Both critics' values, ``[S, 2, B]``."""
+        inputs = torch.cat([observations, actions], dim=-1)
+        seeds, batch, width = inputs.shape
+        inputs = inputs.unsqueeze(1).expand(seeds, 2, batch, width).reshape(seeds * 2, batch, width)
+        return mlp(self.critic if params is None else params, inputs).view(seeds, 2, batch)
+
+    # --- checkpoints -----------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        from baselines.checkpoint import optimizer_tensors
+
+        state = {f"actor.{i}": p.detach() for i, p in enumerate(self.actor)}
+        state |= {f"critic.{i}": p.detach() for i, p in enumerate(self.critic)}
+        state |= {f"critic_target.{i}": p for i, p in enumerate(self.critic_target)}
+        state["log_temperature"] = self.log_temperature.detach()
+        state["generator"] = self.generator.get_state()
+        state |= optimizer_tensors(self.actor_optimizer, "actor_optimizer")
+        state |= optimizer_tensors(self.critic_optimizer, "critic_optimizer")
+        state |= optimizer_tensors(self.temperature_optimizer, "temperature_optimizer")
+        return state
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        from baselines.checkpoint import load_optimizer_tensors
+
+        with torch.no_grad():
+            for name, params in (("actor", self.actor), ("critic", self.critic),
+                                 ("critic_target", self.critic_target)):
+                for i, p in enumerate(params):
+                    p.copy_(state[f"{name}.{i}"])
+            self.log_temperature.copy_(state["log_temperature"])
+        self.generator.set_state(state["generator"])
+        load_optimizer_tensors(self.actor_optimizer, state, "actor_optimizer")
+        load_optimizer_tensors(self.critic_optimizer, state, "critic_optimizer")
+        load_optimizer_tensors(self.temperature_optimizer, state, "temperature_optimizer")
+
+
+def _stack(per_seed: list[Params]) -> Params:
+    """Concatenate per-seed parameter lists along the member dimension."""
+    return [torch.cat([p[i].detach() for p in per_seed]).requires_grad_() for i in range(len(per_seed[0]))]
+
+
+# --- the updates -----------------------------------------------------------------------------
+
+
+def soft_bellman_target(agent: SACAgent, batch: Batch, reward_correction: torch.Tensor | None = None
+                        ) -> torch.Tensor:
+    """r + dr + gamma (1 - done) [min_i Q'_i(s', a') - alpha log pi(a'|s')],  a' ~ pi(s'). ``[S, B]``."""
+    with torch.no_grad():
+        next_actions, next_log_probs = agent.sample_actions(batch.next_observations)
+        next_q = agent.q_values(batch.next_observations, next_actions, agent.critic_target).min(dim=1).values
+        soft_value = next_q - agent.temperature[:, None] * next_log_probs
+        rewards = batch.rewards if reward_correction is None else batch.rewards + reward_correction
+        return rewards + agent.config.discount * (1.0 - batch.terminations) * soft_value
+
+
+def critic_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Tensor | None = None,
+                  sample_weights: torch.Tensor | None = None, extra_loss: ExtraCriticLoss | None = None
+                  ) -> Metrics:
+    """One gradient step on both critics.
+
+    Loss per seed: ``sum_critics mean_batch 0.5 * w * (Q(s, a) - y)^2`` (+ ``extra_loss``), with
+    ``y`` from :func:`soft_bellman_target` and ``w = sample_weights`` (``[S, B]``, default 1).
+    """
+    target = soft_bellman_target(agent, batch, reward_correction)
+    q = agent.q_values(batch.observations, batch.actions)
+    squared_error = (q - target[:, None, :]).pow(2)
+    if sample_weights is not None:
+        squared_error = squared_error * sample_weights[:, None, :]
+    loss_per_seed = 0.5 * squared_error.mean(dim=2).sum(dim=1)
+    metrics: Metrics = {"critic/td_loss": loss_per_seed.detach(), "critic/q": q.detach().mean(dim=(1, 2))}
+    if extra_loss is not None:
+        extra, extra_metrics = extra_loss(agent.q_values)
+        loss_per_seed = loss_per_seed + extra
+        metrics |= extra_metrics
+    agent.critic_optimizer.zero_grad(set_to_none=True)
+    loss_per_seed.sum().backward()
+    agent.critic_optimizer.step()
+    return metrics
+
+
+def actor_update(agent: SACAgent, observations: torch.Tensor) -> Metrics:
+    """One policy step, ``mean_batch [alpha log pi(a|s) - min_i Q_i(s, a)]``, then one temperature
+    step towards the target entropy, using the same sampled actions."""
+    actions, log_probs = agent.sample_actions(observations)
+    q = agent.q_values(observations, actions, detached(agent.critic)).min(dim=1).values
+    actor_loss = (agent.temperature[:, None] * log_probs - q).mean(dim=1)
+    agent.actor_optimizer.zero_grad(set_to_none=True)
+    actor_loss.sum().backward()
+    agent.actor_optimizer.step()
+
+    entropy_gap = (log_probs.detach() + agent.target_entropy).mean(dim=1)
+    temperature_loss = -(agent.log_temperature * entropy_gap)
+    agent.temperature_optimizer.zero_grad(set_to_none=True)
+    temperature_loss.sum().backward()
+    agent.temperature_optimizer.step()
+    return {"actor/loss": actor_loss.detach(), "actor/entropy": -log_probs.detach().mean(dim=1),
+            "actor/temperature": agent.temperature}
+
+
+def update_targets(agent: SACAgent) -> None:
+    with torch.no_grad():
+        torch._foreach_lerp_(agent.critic_target, detached(agent.critic), agent.config.target_update_rate)
+
+
+def sac_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Tensor | None = None,
+               sample_weights: torch.Tensor | None = None, extra_loss: ExtraCriticLoss | None = None,
+               actor_observations: torch.Tensor | None = None) -> Metrics:
+    """Critic step, actor and temperature step, target update. ``actor_observations`` defaults to
+    the batch's observations."""
+    metrics = critic_update(agent, batch, reward_correction=reward_correction,
+                            sample_weights=sample_weights, extra_loss=extra_loss)
+    metrics |= actor_update(agent, batch.observations if actor_observations is None else actor_observations)
+    update_targets(agent)
+    return metrics
