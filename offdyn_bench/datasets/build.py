@@ -105,9 +105,9 @@ def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Poli
             f"the SAC baseline, put its .safetensors and .json sidecar at {behaviour.policy}, then run: "
             f"offdyn-bench datasets build {recipe.dataset_id} --update-manifest")
     try:
-        digest = policy_sha256(path)
-        policy = load_policy(path)
         sidecar = read_sidecar(path)
+        policy = load_policy(path)
+        digest = policy_sha256(path)
     except PolicyError as error:
         raise MissingPolicyError(f"{recipe.dataset_id}: {error}") from error
     if behaviour.policy_sha256 is not None and behaviour.policy_sha256 != digest:
@@ -165,7 +165,7 @@ def _write_with_minari(recipe: Recipe, pair: TaskPair, episodes: list, scores: d
 
     oracle = scores["sac-target"]["value"]
     refs = {} if oracle is None else {"ref_min_score": scores["random"]["value"], "ref_max_score": oracle}
-    with minari_root(root):
+    with minari_root(root), _size_computed_once():
         dataset = minari.create_dataset_from_buffers(
             dataset_id=recipe.dataset_id,
             buffer=episodes,
@@ -181,8 +181,24 @@ def _write_with_minari(recipe: Recipe, pair: TaskPair, episodes: list, scores: d
             requirements=[f"mujoco=={versions()['mujoco']}", f"gymnasium=={versions()['gymnasium']}"],
             **refs,
         )
-        dataset.storage.update_metadata({"offdyn": provenance})
+    storage = dataset.storage
+    storage.update_metadata({"dataset_size": storage.get_size(), "offdyn": provenance})
     return root / recipe.dataset_id
+
+
+@contextlib.contextmanager
+def _size_computed_once() -> Iterator[None]:
+    """Minari re-measures the whole dataset directory after every episode it writes (quadratic
+    in the number of episodes: most of a random-policy build's time). Defer it: the caller
+    measures once at the end, which gives the same field."""
+    from minari.dataset.minari_storage import MinariStorage
+
+    measure = MinariStorage.get_size
+    MinariStorage.get_size = lambda self: 0.0  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        MinariStorage.get_size = measure  # type: ignore[method-assign]
 
 
 def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: pathlib.Path | None = None,

@@ -140,3 +140,49 @@ def download_command(
             path = download_dataset(ident, remote=remote, manifest=manifest, force=force, on_bytes=bar.update,
                                     on_total=set_total, say=lambda message: bar.write(message))
         typer.echo(f"{ident}: installed and verified at {path}")
+
+
+def _checkpoint_state_file(path: pathlib.Path) -> tuple[pathlib.Path, pathlib.Path | None]:
+    """The state file of a checkpoint given as a file, a ``step_<N>`` folder or a run folder,
+    and the run folder (where config.json and result.json are) when there is one."""
+    if path.is_dir() and (path / "checkpoints").is_dir():
+        steps = sorted(p for p in (path / "checkpoints").glob("step_*") if (p / "state.safetensors").is_file())
+        if not steps:
+            raise OffdynError(f"{path}/checkpoints holds no complete checkpoint")
+        return steps[-1] / "state.safetensors", path
+    if path.is_dir():
+        path = path / "state.safetensors"
+    if not path.is_file():
+        raise OffdynError(f"no checkpoint at {path}; expected a run folder, a checkpoints/step_<N> folder or a "
+                          "state.safetensors file")
+    run = path.parent.parent.parent if path.parent.parent.name == "checkpoints" else None
+    return path, run
+
+
+@datasets_app.command("import-policy")
+def import_policy_command(
+    checkpoint: Annotated[pathlib.Path, typer.Argument(help="Run folder, checkpoints/step_<N> folder or state.safetensors of a baselines SAC run.")],
+    trained_on: Annotated[str, typer.Option(help="Env id the policy was trained in, e.g. offdyn/Hopper-gravity-0.5-source-v0.")],
+    out: Annotated[pathlib.Path, typer.Option(help="Where to write <name>.safetensors (+ .json), e.g. assets/policies/sac/hopper-nominal.safetensors.")],
+    member: Annotated[int, typer.Option(help="Which training seed of the checkpoint to keep.")] = 0,
+) -> None:
+    """Extract one seed's actor from a SAC checkpoint into a behaviour/oracle policy file."""
+    import json
+
+    from offdyn_bench.datasets.archive import sha256_file
+    from offdyn_bench.datasets.policies import import_sac_actor
+
+    with _errors_exit():
+        state_file, run = _checkpoint_state_file(checkpoint)
+        training: dict = {"checkpoint": "/".join(state_file.parts[-3:]), "checkpoint_sha256": sha256_file(state_file)}
+        score = None
+        if run is not None and (run / "config.json").is_file():
+            training["config"] = json.loads((run / "config.json").read_text())
+        if run is not None and (run / "result.json").is_file():
+            score = json.loads((run / "result.json").read_text())
+        else:
+            typer.echo("warning: no result.json beside the checkpoint; the policy's score is recorded as null",
+                       err=True)
+        path = import_sac_actor(state_file, out, member=member, trained_on=trained_on, training=training,
+                                score=score)
+        typer.echo(f"wrote {path} and {path.with_suffix('.json')}")

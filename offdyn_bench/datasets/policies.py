@@ -185,3 +185,48 @@ def save_policy(weights_path: str | pathlib.Path, layers: Mapping[str, tuple[np.
     save_file(tensors, str(weights_path))
     sidecar_path(weights_path).write_text(json.dumps(sidecar, indent=2, sort_keys=True) + "\n")
     return weights_path
+
+
+def import_sac_actor(state_file: str | pathlib.Path, out_path: str | pathlib.Path, *, member: int,
+                     trained_on: str, training: Mapping[str, Any], score: Mapping[str, Any] | None,
+                     prefix: str = "actor") -> pathlib.Path:
+    """Extract one seed's actor from a ``baselines`` SAC checkpoint into this module's format.
+
+    A ``baselines`` checkpoint (``checkpoints/step_<N>/state.safetensors``) stacks every training
+    seed: ``actor.<2i>`` is ``[members, in, out]``, ``actor.<2i+1>`` is ``[members, 1, out]``,
+    and the last layer gives the Gaussian's mean and log-std side by side. Only the chosen
+    member's mean path is kept (the critics, optimizer moments and replay buffers stay behind),
+    and the action bounds come from ``trained_on``'s action space.
+    """
+    import gymnasium
+    from safetensors.numpy import load_file
+
+    try:
+        state = load_file(str(state_file))
+    except Exception as error:
+        raise PolicyError(f"cannot read checkpoint {state_file}: {error}") from error
+    indices = sorted(int(key.split(".")[1]) for key in state if key.startswith(prefix + ".")
+                     and key.split(".")[1].isdigit())
+    if not indices or len(indices) % 2 or indices != list(range(len(indices))):
+        raise PolicyError(f"checkpoint {state_file} has no {prefix}.0 .. {prefix}.<2L-1> tensors "
+                          f"(found {sorted(k for k in state if k.startswith(prefix))[:6]})")
+    members = state[f"{prefix}.0"].shape[0]
+    if not 0 <= member < members:
+        raise PolicyError(f"checkpoint {state_file} holds {members} seeds; member {member} is out of range")
+    env = gymnasium.make(trained_on)
+    space = env.action_space
+    env.close()
+    action_dim = int(space.shape[0])  # type: ignore[index]
+    n_layers = len(indices) // 2
+    layers: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for i in range(n_layers):
+        weight = state[f"{prefix}.{2 * i}"][member].T  # [in, out] -> nn.Linear's [out, in]
+        bias = state[f"{prefix}.{2 * i + 1}"][member].reshape(-1)
+        if i == n_layers - 1:
+            if weight.shape[0] != 2 * action_dim:
+                raise PolicyError(f"checkpoint {state_file}: last actor layer has {weight.shape[0]} outputs, "
+                                  f"expected mean and log-std of {action_dim} actions ({2 * action_dim})")
+            weight, bias = weight[:action_dim], bias[:action_dim]
+        layers["mean" if i == n_layers - 1 else f"hidden{i}"] = (weight, bias)
+    return save_policy(out_path, layers, action_low=space.low, action_high=space.high,  # type: ignore[attr-defined]
+                       trained_on=trained_on, training={**training, "checkpoint_member": member}, score=score)
