@@ -17,6 +17,9 @@ app.add_typer(datasets_app, name="datasets")
 from baselines.cli import train_command  # noqa: E402
 
 app.command("train")(train_command)
+from offdyn_bench.diagnose.command import diagnose_command  # noqa: E402
+
+app.command("diagnose")(diagnose_command)
 
 
 @app.command("demo")

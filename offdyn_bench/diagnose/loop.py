@@ -38,7 +38,7 @@ class DiagnosisSettings:
     """Complexity penalty: an added parameter must cut held-out squared error by this fraction."""
     min_z: float = 3.0
     """Significance: the held-out gain must exceed this many block standard errors."""
-    floor_tolerance: float = 0.02
+    floor_tolerance: float = 1e-3
     """Held-out one-step NRMSE within this (absolute) of the noise floor counts as at the floor."""
     heldout_fraction: float = 0.3
     screen_rows: int = 1000

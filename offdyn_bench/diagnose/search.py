@@ -147,7 +147,7 @@ def _fit_smooth(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate:
     bounds = [np.array([(candidate.low - candidate.nominal) / scale]),
               np.array([(candidate.high - candidate.nominal) / scale])]
     z0 = np.array([(candidate.clip(start) - candidate.nominal) / scale])
-    z, _ = mujoco.minimize.least_squares(z0, residual, bounds=bounds, eps=1e-3, max_iter=25, xtol=1e-6,
+    z, _ = mujoco.minimize.least_squares(z0, residual, bounds=bounds, eps=1e-3, max_iter=12, xtol=1e-6, mu_factor=10.0,
                                          verbose=0, output=io.StringIO())
     return to_value(float(np.ravel(z)[0]))
 
@@ -158,7 +158,7 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
     error is piecewise smooth and gradients mislead."""
     low, high = candidate.low, candidate.high
     best, step = candidate.nominal, high - low
-    for _ in range(4):
+    for _ in range(3):
         grid = np.linspace(low, high, 9)
         residuals = evaluator.residuals([hypothesis + (candidate.effect(v),) for v in grid], subset)
         errors = [_sse(r) for r in residuals]
