@@ -204,15 +204,18 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         hypothesis = hypothesis + (chosen_fit.candidate.effect(chosen_fit.value),)
         chosen.append((chosen_fit.candidate, chosen_fit.value, chosen_fit.interval, chosen_fit.on_bound))
         refitted: list[dict[str, Any]] = []
-        if len(chosen) > 1:  # effects found earlier were fitted without this one: refit them
+        if len(chosen) > 1:
+            # Effects found earlier were fitted while this one was missing: refit every effect with
+            # the others fixed (one coordinate pass, the newest last so it sees the refits).
             tick = time.perf_counter()
-            for j in range(len(chosen) - 1):
+            for j in [*range(len(chosen) - 1), len(chosen) - 1]:
                 candidate, value, _, _ = chosen[j]
-                others = tuple(e for k, e in enumerate(hypothesis) if k != j)
+                others = hypothesis[:j] + hypothesis[j + 1:]
                 refit = fit(evaluator, others, candidate, value)
                 chosen[j] = (candidate, refit.value, refit.interval, refit.on_bound)
                 hypothesis = others[:j] + (candidate.effect(refit.value),) + others[j:]
                 refitted.append(_effect_json(candidate, refit.value))
+            chosen_fit = Fit(chosen_fit.candidate, chosen[-1][1], chosen[-1][2], chosen[-1][3], chosen_fit.sse)
             clock["fits"] += time.perf_counter() - tick
 
         tick = time.perf_counter()

@@ -155,17 +155,32 @@ def _fit_smooth(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate:
 def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate,
                    subset: str) -> tuple[float, float]:
     """Nested grids: a threshold changes the prediction only where a command crosses it, so the
-    error is piecewise smooth and gradients mislead."""
+    error is piecewise smooth (a saturation) or piecewise constant (a dead zone) and gradients
+    mislead. Returns the value and the resolution it was located to."""
     low, high = candidate.low, candidate.high
     best, step = candidate.nominal, high - low
-    for _ in range(3):
+    levels = 3 if candidate.kind == "action_deadzone" else 5
+    for _ in range(levels):
         grid = np.linspace(low, high, 9)
-        residuals = evaluator.residuals([hypothesis + (candidate.effect(v),) for v in grid], subset)
-        errors = [_sse(r) for r in residuals]
-        i = int(np.argmin(errors))
-        best = float(grid[i])
-        step = grid[1] - grid[0]
+        errors = [_sse(r) for r in evaluator.residuals([hypothesis + (candidate.effect(v),) for v in grid], subset)]
+        best = float(grid[int(np.argmin(errors))])
+        step = float(grid[1] - grid[0])
         low, high = max(candidate.low, best - step), min(candidate.high, best + step)
+    if candidate.kind == "action_deadzone":
+        # The error only changes where the threshold passes a recorded command: try the midpoints
+        # between neighbouring command magnitudes inside the bracket, at most 32 of them.
+        commands = evaluator.applied_actions(hypothesis)[evaluator.subsets[subset]]
+        mask = candidate.effect(best).dimension_mask(commands.shape[1], evaluator.source.base_model)  # type: ignore[attr-defined]
+        magnitudes = np.unique(np.abs(commands[:, mask]))
+        inside = magnitudes[(magnitudes >= low) & (magnitudes <= high)]
+        if inside.size >= 2:
+            midpoints = 0.5 * (inside[1:] + inside[:-1])
+            if midpoints.size > 32:
+                midpoints = midpoints[np.linspace(0, midpoints.size - 1, 32).round().astype(int)]
+            trials = [best, *midpoints.tolist()]
+            errors = [_sse(r) for r in evaluator.residuals([hypothesis + (candidate.effect(v),) for v in trials], subset)]
+            best = float(trials[int(np.argmin(errors))])
+            step = float(np.max(np.diff(inside))) if midpoints.size <= 32 else step / 4
     return best, step
 
 

@@ -1,0 +1,112 @@
+"""The diagnosis names effects that nothing declares to it, fits their values and closes the gap."""
+
+from __future__ import annotations
+
+import gymnasium
+import numpy as np
+import pytest
+from diagnose_target_data import record
+
+import offdyn_bench  # noqa: F401  (registers the task ids)
+from offdyn_bench import make_robot_env
+from offdyn_bench.diagnose import Diagnosis, DiagnosisSettings, Transitions, diagnose
+
+# Small data and subsets keep the default run quick; test_slow.py runs the defaults on more data.
+STEPS = 1000
+FAST = DiagnosisSettings(screen_rows=400, fit_rows=700)
+
+
+def _assert_found(result: Diagnosis, expected: list[tuple[str, str | None, float]]) -> None:
+    found = {(e["kind"], e["target"]): e["value"] for e in result.effects_added}
+    assert set(found) == {(kind, target) for kind, target, _ in expected}, result.effects_added
+    for kind, target, value in expected:
+        assert found[(kind, target)] == pytest.approx(value, rel=0.10), (kind, target, found)
+    after = result.error_after
+    assert not result.unexplained_residual, result.stop_reason
+    assert after.heldout_one_step_nrmse <= 1.1 * result.noise_floor + 1e-3
+    assert after.heldout_one_step_nrmse < 0.1 * result.error_before.heldout_one_step_nrmse
+    assert after.horizon_nrmse < result.error_before.horizon_nrmse
+
+
+@pytest.mark.parametrize(
+    ("hidden", "expected"),
+    [
+        pytest.param([{"kind": "action_deadzone", "target": "thigh_joint", "threshold": 0.3}],
+                     [("action_deadzone", "thigh_joint", 0.3)], id="deadzone-one-actuator"),
+        pytest.param([{"kind": "frictionloss", "target": "leg_joint", "value": 8.0},
+                      {"kind": "frictionloss", "target": "foot_joint", "value": 5.0}],
+                     [("frictionloss", "leg_joint", 8.0), ("frictionloss", "foot_joint", 5.0)],
+                     id="frictionloss-two-joints"),
+        pytest.param([{"kind": "action_delay", "target": None, "steps": 1}],
+                     [("action_delay", None, 1)], id="one-step-action-delay"),
+        pytest.param([{"kind": "mass", "target": "leg", "scale": 1.5}],
+                     [("mass", "leg", 1.5)], id="heavier-body"),
+        pytest.param([{"kind": "gear", "target": "foot_joint", "scale": 0.6}],
+                     [("gear", "foot_joint", 0.6)], id="weaker-actuator"),
+        pytest.param([{"kind": "action_deadzone", "target": "leg_joint", "threshold": 0.25},
+                      {"kind": "mass", "target": "torso", "scale": 1.3}],
+                     [("action_deadzone", "leg_joint", 0.25), ("mass", "torso", 1.3)], id="two-effects"),
+    ],
+)
+def test_names_fits_and_closes_an_undeclared_effect(hidden, expected) -> None:
+    result = diagnose("Hopper-v5", Transitions(**record(hidden, STEPS, seed=1)), FAST)
+    _assert_found(result, expected)
+
+
+def test_declared_shift_plus_undeclared_effect() -> None:
+    """The source declares the gravity shift; only the undeclared weaker motor is added."""
+    hidden = [{"kind": "gravity", "scale": 0.5}, {"kind": "gear", "target": "thigh_joint", "scale": 0.7}]
+    result = diagnose("offdyn/Hopper-gravity-0.5-target-v0", Transitions(**record(hidden, STEPS, seed=2)), FAST)
+    _assert_found(result, [("gear", "thigh_joint", 0.7)])
+    calibrated = result.calibrated_env
+    assert calibrated["builder"] == "gymnasium.make"
+    env = gymnasium.make(calibrated["env_id"], **calibrated["kwargs"])
+    assert env.unwrapped.model.actuator_gear[0, 0] == pytest.approx(0.7 * 200, rel=0.01)
+
+
+def test_calibrated_effect_list_rebuilds_the_target() -> None:
+    """The calibrated list from a plain Hopper-v5 source builds a simulator that reproduces the data."""
+    hidden = [{"kind": "action_delay", "target": None, "steps": 1}]
+    arrays = record(hidden, 600, seed=3)
+    result = diagnose("Hopper-v5", Transitions(**arrays), FAST)
+    calibrated = result.calibrated_env
+    assert calibrated["builder"] == "offdyn_bench.make_robot_env"
+    env = make_robot_env(calibrated["robot"], **calibrated["kwargs"])
+    target = make_robot_env("Hopper", effects=hidden)
+    env.reset(seed=5)
+    target.reset(seed=5)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        action = rng.uniform(-1, 1, 3)
+        obs, *_ = env.step(action)
+        expected, *_ = target.step(action)
+        np.testing.assert_allclose(obs, expected, atol=1e-9)
+
+
+def test_observation_noise_only_adds_nothing() -> None:
+    """A control dataset: the source is right, the sensors are noisy. No false positive."""
+    hidden = [{"kind": "obs_noise", "std": 0.01}]
+    result = diagnose("Hopper-v5", Transitions(**record(hidden, STEPS, seed=4)), FAST)
+    assert result.effects_added == ()
+    assert not result.unexplained_residual
+    assert result.noise_floor > 1e-3  # the noise is measured, not assumed away
+    assert result.error_after.heldout_one_step_nrmse == pytest.approx(result.noise_floor, rel=0.2)
+
+
+def test_contact_model_swap_leaves_an_honest_residual() -> None:
+    """An engine-level difference the vocabulary cannot express: improve what can be, say what is left."""
+    hidden = [{"kind": "integrator", "integrator": "Euler"}, {"kind": "contact_solref", "timeconst": 0.05},
+              {"kind": "friction_cone", "cone": "elliptic"}]
+    result = diagnose("Hopper-v5", Transitions(**record(hidden, STEPS, seed=5)), FAST)
+    assert result.unexplained_residual
+    assert result.error_after.heldout_one_step_nrmse <= result.error_before.heldout_one_step_nrmse
+    assert result.stop_reason
+
+
+def test_state_rebuilt_from_observations() -> None:
+    """Without stored qpos/qvel the state comes from the observation; clipped rows are dropped and said."""
+    hidden = [{"kind": "gear", "target": "leg_joint", "scale": 0.75}]
+    result = diagnose("Hopper-v5", Transitions(**record(hidden, STEPS, seed=6, with_state=False)), FAST)
+    assert result.state_source == "rebuilt from observations"
+    assert any("rootx" in note for note in result.notes)
+    _assert_found(result, [("gear", "leg_joint", 0.75)])
