@@ -125,9 +125,33 @@ def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Poli
     return policy, pinned, provenance
 
 
-def reference_scores(recipe: Recipe, pair: TaskPair) -> dict[str, Any]:
-    """Returns in the target of a uniform-random policy and, when its file ships, of the
-    ``sac-target`` oracle; both on the same fixed episode seeds, with their provenance."""
+def _oracle(recipe: Recipe, fresh: bool) -> tuple[pathlib.Path | None, Recipe]:
+    """The oracle file to score with, and the recipe with its hash pinned.
+
+    A recipe that pins an oracle must find that very file. One that pins none uses an oracle
+    that ships only when the build records a new dataset (``fresh``): reproducing a recorded
+    dataset must not pick up an oracle that arrived later (its score would change the bytes;
+    it belongs in the next dataset version)."""
+    if recipe.oracle_policy is None:
+        return None, recipe
+    path = repo_path(recipe.oracle_policy)
+    if recipe.oracle_policy_sha256 is not None:
+        if not path.is_file():
+            raise MissingPolicyError(f"{recipe.dataset_id}: the recipe pins oracle {recipe.oracle_policy} "
+                                     f"(sha256 {recipe.oracle_policy_sha256}) but the file is missing")
+        digest = policy_sha256(path)
+        if digest != recipe.oracle_policy_sha256:
+            raise RecipeError(f"{recipe.dataset_id}: oracle {recipe.oracle_policy} has sha256 {digest}, the recipe "
+                              f"pins {recipe.oracle_policy_sha256}; a new oracle is a new dataset version")
+        return path, recipe
+    if fresh and path.is_file():
+        return path, dataclasses.replace(recipe, oracle_policy_sha256=policy_sha256(path))
+    return None, recipe
+
+
+def reference_scores(recipe: Recipe, pair: TaskPair, oracle_path: pathlib.Path | None) -> dict[str, Any]:
+    """Returns in the target of a uniform-random policy and, when ``oracle_path`` is given, of
+    the ``sac-target`` oracle; both on the same fixed episode seeds, with their provenance."""
     env = pair.make("target")
     seeds = list(range(recipe.reference_seed, recipe.reference_seed + recipe.reference_episodes))
     rng_seed = [recipe.reference_seed, 1]
@@ -142,19 +166,19 @@ def reference_scores(recipe: Recipe, pair: TaskPair) -> dict[str, Any]:
         "random": {"value": float(np.mean(random_returns)), "std": float(np.std(random_returns)),
                    "returns": random_returns, "policy": "uniform random actions", "rng_seed": rng_seed, **common},
     }
-    oracle_path = repo_path(recipe.oracle_policy) if recipe.oracle_policy else None
-    if oracle_path is not None and oracle_path.is_file():
+    if oracle_path is not None:
         oracle = load_policy(oracle_path)
         oracle_returns = episode_returns(env, oracle, episodes=recipe.reference_episodes, seed=seeds[0])
         sidecar = read_sidecar(oracle_path)
         scores["sac-target"] = {"value": float(np.mean(oracle_returns)), "std": float(np.std(oracle_returns)),
                                 "returns": oracle_returns, "policy": recipe.oracle_policy,
-                                "policy_sha256": policy_sha256(oracle_path), "training": sidecar.get("training"),
+                                "policy_sha256": recipe.oracle_policy_sha256, "training": sidecar.get("training"),
                                 **common}
     else:
         scores["sac-target"] = {"value": None, "policy": recipe.oracle_policy,
-                                "note": f"no sac-target policy ships at {recipe.oracle_policy} (SAC trained in the "
-                                        "target, DAP's 'RL on target'); the score is left empty rather than guessed"}
+                                "note": "no sac-target policy (SAC trained in the target, DAP's 'RL on target') "
+                                        "was available when this dataset version was built; the score is left "
+                                        "empty rather than guessed"}
     env.close()
     return scores
 
@@ -221,7 +245,8 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
                                                                            int(noise_seed)),
                                         on_step=on_progress))
     env.close()
-    scores = reference_scores(recipe, pair)
+    oracle_path, recipe = _oracle(recipe, fresh=recorded is None or recorded.files is None)
+    scores = reference_scores(recipe, pair, oracle_path)
     provenance = {
         "recipe": recipe.to_dict(),
         "task": pair.to_dict(),

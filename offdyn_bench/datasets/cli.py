@@ -163,26 +163,27 @@ def _checkpoint_state_file(path: pathlib.Path) -> tuple[pathlib.Path, pathlib.Pa
 def import_policy_command(
     checkpoint: Annotated[pathlib.Path, typer.Argument(help="Run folder, checkpoints/step_<N> folder or state.safetensors of a baselines SAC run.")],
     trained_on: Annotated[str, typer.Option(help="Env id the policy was trained in, e.g. offdyn/Hopper-gravity-0.5-source-v0.")],
-    out: Annotated[pathlib.Path, typer.Option(help="Where to write <name>.safetensors (+ .json), e.g. assets/policies/sac/hopper-nominal.safetensors.")],
+    out: Annotated[pathlib.Path, typer.Option(help="Where to write <name>.safetensors (+ .json), e.g. assets/policies/sac-source/hopper-nominal.safetensors.")],
     member: Annotated[int, typer.Option(help="Which training seed of the checkpoint to keep.")] = 0,
+    eval_episodes: Annotated[int, typer.Option(help="Episodes (seeds 1000000, ...) to score it in --trained-on.")] = 10,
 ) -> None:
     """Extract one seed's actor from a SAC checkpoint into a behaviour/oracle policy file."""
     import json
 
     from offdyn_bench.datasets.archive import sha256_file
-    from offdyn_bench.datasets.policies import import_sac_actor
+    from offdyn_bench.datasets.policies import evaluate_policy, import_sac_actor, update_sidecar
 
     with _errors_exit():
         state_file, run = _checkpoint_state_file(checkpoint)
         training: dict = {"checkpoint": "/".join(state_file.parts[-3:]), "checkpoint_sha256": sha256_file(state_file)}
-        score = None
+        run_result = None
         if run is not None and (run / "config.json").is_file():
             training["config"] = json.loads((run / "config.json").read_text())
         if run is not None and (run / "result.json").is_file():
-            score = json.loads((run / "result.json").read_text())
-        else:
-            typer.echo("warning: no result.json beside the checkpoint; the policy's score is recorded as null",
-                       err=True)
+            run_result = json.loads((run / "result.json").read_text())
         path = import_sac_actor(state_file, out, member=member, trained_on=trained_on, training=training,
-                                score=score)
-        typer.echo(f"wrote {path} and {path.with_suffix('.json')}")
+                                score=None)
+        score = {"evaluation": evaluate_policy(path, trained_on, eval_episodes), "run_result": run_result}
+        update_sidecar(path, score=score)
+        typer.echo(f"wrote {path} and {path.with_suffix('.json')}; mean return in {trained_on}: "
+                   f"{score['evaluation']['mean_return']:.1f} over {eval_episodes} episodes")

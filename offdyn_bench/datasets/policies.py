@@ -230,3 +230,27 @@ def import_sac_actor(state_file: str | pathlib.Path, out_path: str | pathlib.Pat
         layers["mean" if i == n_layers - 1 else f"hidden{i}"] = (weight, bias)
     return save_policy(out_path, layers, action_low=space.low, action_high=space.high,  # type: ignore[attr-defined]
                        trained_on=trained_on, training={**training, "checkpoint_member": member}, score=score)
+
+
+def update_sidecar(weights_path: str | pathlib.Path, **fields: Any) -> None:
+    """Set top-level fields of a policy's sidecar (e.g. its score once measured)."""
+    meta = read_sidecar(weights_path)
+    meta.update(fields)
+    sidecar_path(weights_path).write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+
+
+def evaluate_policy(weights_path: str | pathlib.Path, env_id: str, episodes: int,
+                    first_seed: int = 1_000_000) -> dict[str, Any]:
+    """Mean undiscounted return of the deterministic policy over fixed episode seeds, with the
+    provenance a sidecar records."""
+    import gymnasium
+
+    from offdyn_bench.datasets.collect import episode_returns
+    from offdyn_bench.versions import versions
+
+    env = gymnasium.make(env_id)
+    returns = episode_returns(env, load_policy(weights_path), episodes=episodes, seed=first_seed)
+    env.close()
+    return {"env_id": env_id, "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)),
+            "returns": returns, "episode_seeds": list(range(first_seed, first_seed + episodes)),
+            "policy": "deterministic: tanh(mean)", "versions": versions()}

@@ -45,7 +45,8 @@ DEFAULT_SEED = 0
 # Reference episodes use their own seeds, disjoint from any data episode's seed.
 REFERENCE_SEED = 1_000_000
 REFERENCE_EPISODES = 10
-DATA_FORMAT = "arrow"
+DATA_FORMAT = "hdf5"
+DATA_FORMATS = ("arrow", "hdf5")
 
 _ID_RE = re.compile(r"^(?P<namespace>[a-z0-9_-]+)/(?P<slug>[a-z0-9_-]+)/(?P<quality>[a-z0-9_-]+?)-v(?P<version>\d+)$")
 
@@ -91,13 +92,16 @@ def dynamics_label(pair: TaskPair, side: Literal["source", "target"]) -> str:
     return f"{pair.robot.lower()}-nominal" if not pair.effects(side) else f"{pair.name}-{side}"
 
 
-def sac_policy_path(pair: TaskPair, side: Literal["source", "target"]) -> str:
-    """Where the SAC policy trained in ``side``'s dynamics ships, relative to the repo root.
+def sac_policy_path(pair: TaskPair, role: Literal["sac-source", "sac-target"]) -> str:
+    """Where a pair's behaviour policy (``sac-source``, DAP's "RL on source") or oracle
+    (``sac-target``, "RL on target") ships, relative to the repo root.
 
-    Policies are named by the dynamics they were trained in, so the behaviour policy ("RL on
-    source") of every pair with a nominal source is one file, and so is the oracle of every
-    pair with a nominal target."""
-    return f"assets/policies/sac/{dynamics_label(pair, side)}.safetensors"
+    Files are named by the dynamics they were trained in, so every pair with a nominal source
+    shares one behaviour policy, and every pair with a nominal target one oracle. Behaviour
+    policies and oracles sit in separate folders: a quick behaviour policy must never stand
+    in for an oracle in normalized scores."""
+    side: Literal["source", "target"] = "source" if role == "sac-source" else "target"
+    return f"assets/policies/{role}/{dynamics_label(pair, side)}.safetensors"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -138,6 +142,7 @@ class Recipe:
     reference_episodes: int = REFERENCE_EPISODES
     reference_seed: int = REFERENCE_SEED
     oracle_policy: str | None = None
+    oracle_policy_sha256: str | None = None
     data_format: str = DATA_FORMAT
 
     def __post_init__(self) -> None:
@@ -147,9 +152,9 @@ class Recipe:
             raise RecipeError(f"{self.dataset_id}: reference_episodes must be >= 1, got {self.reference_episodes}")
         if self.collect_in != "target":
             raise RecipeError(f"{self.dataset_id}: datasets are collected in the target, got {self.collect_in!r}")
-        if self.data_format != DATA_FORMAT:
-            raise RecipeError(f"{self.dataset_id}: data_format {self.data_format!r}; only {DATA_FORMAT!r} builds "
-                              "byte-identically (HDF5 groups carry timestamps)")
+        if self.data_format not in DATA_FORMATS:
+            raise RecipeError(f"{self.dataset_id}: data_format {self.data_format!r}; expected one of "
+                              f"{DATA_FORMATS} (Minari storages checked to build byte-identically)")
 
     @property
     def pair(self) -> TaskPair:
@@ -190,14 +195,14 @@ def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,
     if quality == "random":
         behaviour = Behaviour(kind="uniform-random")
     else:
-        behaviour = Behaviour(kind="policy", policy=sac_policy_path(pair, "source"),
+        behaviour = Behaviour(kind="policy", policy=sac_policy_path(pair, "sac-source"),
                               action_noise_std=DEFAULT_ACTION_NOISE_STD)
     return Recipe(
         dataset_id=ident, task=pair.name, task_version=pair.version, task_sha256=task_sha256(pair),
         quality=quality,  # type: ignore[arg-type]
         behaviour=behaviour,
         num_transitions=DEFAULT_TRANSITIONS[quality] if num_transitions is None else num_transitions,  # type: ignore[index]
-        seed=seed, oracle_policy=sac_policy_path(pair, "target"),
+        seed=seed, oracle_policy=sac_policy_path(pair, "sac-target"),
     )
 
 

@@ -110,3 +110,30 @@ def test_import_of_a_baselines_sac_checkpoint_acts_like_its_mean_action(tmp_path
     with pytest.raises(PolicyError, match="member 2 is out of range"):
         import_sac_actor(tmp_path / "state.safetensors", tmp_path / "q.safetensors", member=2,
                          trained_on="offdyn/Hopper-gravity-0.5-source-v0", training={}, score=None)
+
+
+def test_oracle_is_scored_and_pinned_on_a_fresh_build(tiny_recipe: MakeRecipe, tmp_path: pathlib.Path) -> None:
+    oracle = write_policy(tmp_path / "oracle.safetensors", seed=5)
+    recipe = tiny_recipe(transitions=40, oracle_policy=str(oracle))
+    result = build_dataset(recipe)
+    assert result.entry.recipe.oracle_policy_sha256 == policy_sha256(oracle)
+    scores = result.entry.reference_scores
+    assert scores["sac-target"]["value"] == pytest.approx(np.mean(scores["sac-target"]["returns"]))
+    metadata = minari.load_dataset(recipe.dataset_id).storage.metadata
+    assert metadata["ref_max_score"] == scores["sac-target"]["value"]
+    assert metadata["ref_min_score"] == scores["random"]["value"]
+    write_policy(oracle, seed=6)
+    with pytest.raises(RecipeError, match="a new oracle is a new dataset version"):
+        build_dataset(result.entry.recipe, install=False)
+
+
+def test_an_oracle_that_arrives_later_does_not_change_a_recorded_dataset(tiny_recipe: MakeRecipe,
+                                                                        tmp_path: pathlib.Path) -> None:
+    recipe = tiny_recipe(transitions=40, oracle_policy=str(tmp_path / "later.safetensors"))
+    recorded = build_dataset(recipe, install=False).entry
+    assert recorded.reference_scores["sac-target"]["value"] is None
+    write_policy(tmp_path / "later.safetensors")
+    again = build_dataset(recorded.recipe, recorded=recorded, install=False).entry
+    assert again.files == recorded.files
+    fresh = build_dataset(recorded.recipe, install=False).entry  # a new recording scores it
+    assert fresh.reference_scores["sac-target"]["value"] is not None and fresh.files != recorded.files

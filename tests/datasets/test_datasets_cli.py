@@ -1,0 +1,102 @@
+"""``offdyn-bench datasets ...`` end to end: build --out is a remote that download installs from."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+
+import minari
+from typer.testing import CliRunner
+
+from offdyn_bench.cli import app
+from offdyn_bench.datasets.manifest import Entry, Manifest, read_manifest, write_manifest
+from offdyn_bench.datasets.recipes import default_recipes
+
+runner = CliRunner()
+
+
+def invoke(*args: str):  # noqa: ANN201 - click's Result
+    return runner.invoke(app, ["datasets", *args])
+
+
+def tiny_manifest(path: pathlib.Path, tiny_recipe) -> tuple[Manifest, str]:  # noqa: ANN001
+    recipe = tiny_recipe("walker2d-friction-0.5", transitions=90)
+    manifest = Manifest.from_entries([Entry(recipe=recipe)])
+    write_manifest(manifest, path)
+    return manifest, recipe.dataset_id
+
+
+def test_list_shows_the_shipped_manifest() -> None:
+    result = invoke("list")
+    assert result.exit_code == 0, result.output
+    for recipe in default_recipes():
+        assert recipe.dataset_id in result.output
+    assert f"{len(default_recipes())} datasets" in result.output
+
+
+def test_shipped_manifest_holds_the_default_recipes() -> None:
+    shipped = read_manifest()
+    assert {r.dataset_id for r in default_recipes()} <= set(shipped.entries)
+    for recipe in default_recipes():
+        entry = shipped.get(recipe.dataset_id)
+        # Same recipe, except the policy hash a build pins.
+        pinned = dataclasses.replace(entry.recipe, behaviour=dataclasses.replace(entry.recipe.behaviour,
+                                                                                 policy_sha256=None))
+        assert pinned == recipe
+        entry.recipe.check_task()  # the task definitions it was made for are unchanged
+
+
+def test_build_out_then_download_from_file_remote(tmp_path: pathlib.Path, tiny_recipe, monkeypatch) -> None:
+    manifest_path = tmp_path / "manifest.json"
+    _, ident = tiny_manifest(manifest_path, tiny_recipe)
+    remote = tmp_path / "remote"
+    built = invoke("build", ident, "--out", str(remote), "--no-install", "--update-manifest",
+                   "--manifest", str(manifest_path))
+    assert built.exit_code == 0, built.output
+    assert read_manifest(manifest_path).get(ident).is_built
+    assert json.loads((remote / f"{ident}.json").read_text())["files"] == read_manifest(manifest_path).get(ident).files
+    monkeypatch.setenv("OFFDYN_REMOTE", remote.as_uri())
+    fetched = invoke("download", ident, "--manifest", str(manifest_path))
+    assert fetched.exit_code == 0, fetched.output
+    assert "installed and verified" in fetched.output
+    verified = invoke("verify", ident, "--manifest", str(manifest_path))
+    assert verified.exit_code == 0 and "OK" in verified.output
+    assert minari.load_dataset(ident).total_steps == 90
+    # A rebuild reproduces the recorded bytes (and says so).
+    rebuilt = invoke("build", ident, "--no-install", "--manifest", str(manifest_path))
+    assert rebuilt.exit_code == 0 and "matches the manifest" in rebuilt.output
+
+
+def test_verify_fails_on_tampered_data(tmp_path: pathlib.Path, tiny_recipe, isolated_paths) -> None:
+    manifest_path = tmp_path / "manifest.json"
+    _, ident = tiny_manifest(manifest_path, tiny_recipe)
+    assert invoke("build", ident, "--update-manifest", "--manifest", str(manifest_path)).exit_code == 0
+    victim = isolated_paths / ident / "data" / "main_data.hdf5"
+    data = bytearray(victim.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    victim.write_bytes(bytes(data))
+    result = invoke("verify", ident, "--manifest", str(manifest_path))
+    assert result.exit_code == 1
+    assert "sha256 mismatch" in result.output and "FAILED" in result.output
+
+
+def test_build_reports_a_missing_behaviour_policy(tmp_path: pathlib.Path, tiny_recipe) -> None:
+    recipe = tiny_recipe(quality="source-policy")
+    recipe = dataclasses.replace(recipe, behaviour=dataclasses.replace(
+        recipe.behaviour, policy="assets/policies/sac-source/not-trained-yet.safetensors"))
+    write_manifest(Manifest.from_entries([Entry(recipe=recipe)]), tmp_path / "manifest.json")
+    result = invoke("build", "--all", "--no-install", "--manifest", str(tmp_path / "manifest.json"))
+    assert result.exit_code == 1
+    assert "behaviour policy assets/policies/sac-source/not-trained-yet.safetensors is missing" in result.output
+    assert "1 of 1 datasets not built" in result.output
+
+
+def test_bad_ids_and_missing_remote_are_clear_errors(monkeypatch) -> None:
+    result = invoke("build", "offdyn/hopper-gravity-0p5/expert-v0")
+    assert result.exit_code == 1 and "unknown dataset quality 'expert'" in result.output
+    result = invoke("build", "hopper-gravity-0.5")
+    assert result.exit_code == 1 and "malformed dataset id" in result.output
+    monkeypatch.delenv("OFFDYN_REMOTE")
+    result = invoke("download", "offdyn/hopper-gravity-0p5/random-v0")
+    assert result.exit_code == 1 and "no remote configured" in result.output
