@@ -52,10 +52,11 @@ class Errors:
     heldout_one_step_nrmse: float
     horizon_nrmse: float
     heldout_per_dimension: tuple[float, ...]
+    heldout_trimmed_nrmse: float
 
     def to_json(self) -> dict[str, float]:
         return {"one_step_nrmse": self.one_step_nrmse, "heldout_one_step_nrmse": self.heldout_one_step_nrmse,
-                "horizon_nrmse": self.horizon_nrmse}
+                "horizon_nrmse": self.horizon_nrmse, "heldout_trimmed_one_step_nrmse": self.heldout_trimmed_nrmse}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,7 +133,8 @@ def _errors(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> Errors:
     summary = evaluator.summary(hypothesis)
     return Errors(one_step_nrmse=summary["train"].nrmse, heldout_one_step_nrmse=summary["heldout"].nrmse,
                   horizon_nrmse=summary["horizon"].nrmse,
-                  heldout_per_dimension=tuple(float(x) for x in summary["heldout"].per_dimension))
+                  heldout_per_dimension=tuple(float(x) for x in summary["heldout"].per_dimension),
+                  heldout_trimmed_nrmse=summary["heldout"].trimmed_nrmse)
 
 
 def _effect_json(candidate: Candidate, value: float) -> dict[str, Any]:
@@ -170,7 +172,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     stop_reason = f"reached the limit of {settings.max_effects} effects"
 
     for _ in range(settings.max_effects):
-        if _at_floor(current.heldout_one_step_nrmse, floor, settings):
+        if _at_floor(current.heldout_trimmed_nrmse, floor, settings):
             stop_reason = "held-out error reached the noise floor"
             break
         tick = time.perf_counter()
@@ -229,7 +231,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                           refitted=tuple(refitted)))
         current = after
     else:
-        if _at_floor(current.heldout_one_step_nrmse, floor, settings):
+        if _at_floor(current.heldout_trimmed_nrmse, floor, settings):
             stop_reason = "held-out error reached the noise floor"
 
     effects_added = tuple({**_effect_json(c, v), "interval": [float(lo), float(hi)], "on_bound": bound}
@@ -244,7 +246,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         state_source="rebuilt from observations" if evaluator.rebuilt else "stored qpos/qvel",
         notes=tuple(notes), effects_added=effects_added, error_before=first, error_after=current,
         noise_floor=floor, noise_floor_per_dimension=tuple(float(x) for x in floor_dims),
-        unexplained_residual=not _at_floor(current.heldout_one_step_nrmse, floor, settings),
+        unexplained_residual=not _at_floor(current.heldout_trimmed_nrmse, floor, settings),
         stop_reason=stop_reason, steps=tuple(steps),
         calibrated_env=source.calibrated_env([c.effect(v) for c, v, _, _ in chosen]),
         dimension_names=tuple(source.observation_map.names[i] for i in evaluator.dims),

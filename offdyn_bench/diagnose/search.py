@@ -168,7 +168,9 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
         low, high = max(candidate.low, best - step), min(candidate.high, best + step)
     if candidate.kind == "action_deadzone":
         # The error only changes where the threshold passes a recorded command: try the midpoints
-        # between neighbouring command magnitudes inside the bracket, at most 32 of them.
+        # between neighbouring command magnitudes inside the bracket (at most 32), on every
+        # training row, since only rows whose command lies between two trials are re-simulated.
+        subset = "train"
         commands = evaluator.applied_actions(hypothesis)[evaluator.subsets[subset]]
         mask = candidate.effect(best).dimension_mask(commands.shape[1], evaluator.source.base_model)  # type: ignore[attr-defined]
         magnitudes = np.unique(np.abs(commands[:, mask]))
@@ -178,10 +180,17 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
             if midpoints.size > 32:
                 midpoints = midpoints[np.linspace(0, midpoints.size - 1, 32).round().astype(int)]
             trials = [best, *midpoints.tolist()]
-            errors = [_sse(r) for r in evaluator.residuals([hypothesis + (candidate.effect(v),) for v in trials], subset)]
+            errors = [_sse(r) for r in _residuals_one_by_one(evaluator, hypothesis, candidate, trials, subset)]
             best = float(trials[int(np.argmin(errors))])
             step = float(np.max(np.diff(inside))) if midpoints.size <= 32 else step / 4
     return best, step
+
+
+def _residuals_one_by_one(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate,
+                          values: list[float], subset: str) -> list[np.ndarray]:
+    """Residuals of neighbouring values one call at a time, so each reuses the previous rollout
+    for every row the small change leaves alone."""
+    return [evaluator.residuals([hypothesis + (candidate.effect(v),)], subset)[0] for v in values]
 
 
 def _fit_integer(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate, subset: str) -> float:
