@@ -2,9 +2,10 @@
 install.
 
 The bytes are a function of the recipe, the code and the platform's libraries only: fixed seeds,
-a deterministic behaviour, Minari's Arrow storage (HDF5 would stamp group creation times), no
-time, host or path in the metadata, and archives with fixed member order, owner and time.
-``tests/datasets/test_build.py`` builds twice and compares the sha256 of every file.
+a deterministic behaviour, no time, host or absolute path in the metadata, and archives with
+fixed member order, owner and time. Minari's storages add nothing that varies (h5py writes no
+object timestamps by default, Arrow IPC files carry none); ``tests/datasets/test_datasets_build.py``
+builds each format twice and compares the sha256 of every file.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 
 from offdyn_bench.datasets.archive import compare_files, tree_sha256, write_archive
 from offdyn_bench.datasets.collect import collect_transitions, episode_returns, gaussian_action_noise
-from offdyn_bench.datasets.install import dataset_dir, datasets_root, install_tree, is_installed, staging
+from offdyn_bench.datasets.install import InstallError, dataset_dir, datasets_root, install_tree, is_installed, staging
 from offdyn_bench.datasets.manifest import (
     ArchiveRecord,
     Entry,
@@ -267,6 +268,11 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
                     f"rebuilt {recipe.dataset_id} differs from the manifest ({len(problems)} problems: "
                     + "; ".join(problems[:3]) + "). The manifest was built with "
                     f"{recorded.built_with}, this build uses {versions()}; nothing was installed")
+        # An identical installed copy is kept; a different one only goes with --force.
+        already = install and not replace and is_installed(recipe.dataset_id, root)
+        if already and tree_sha256(dataset_dir(recipe.dataset_id, root)) != files:
+            raise InstallError(f"{recipe.dataset_id} is installed at {dataset_dir(recipe.dataset_id, root)} with "
+                               "other bytes; pass --force to replace it")
         archive_path = (out_dir if out_dir is not None else work / "archive") / archive_name(recipe.dataset_id)
         archive_sha = write_archive(built, archive_path)
         entry = Entry(recipe=recipe, files=files,
@@ -275,15 +281,11 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
                       reference_scores=scores, built_with=versions())
         if out_dir is not None:
             publish_entry(entry, out_dir)
-        installed_at, already = None, False
-        if install:
-            if is_installed(recipe.dataset_id, root) and not replace:
-                if tree_sha256(dataset_dir(recipe.dataset_id, root)) != files:
-                    raise OffdynError(f"{recipe.dataset_id} is installed at {dataset_dir(recipe.dataset_id, root)} "
-                                      "with other bytes; pass --force to replace it")
-                installed_at, already = dataset_dir(recipe.dataset_id, root), True
-            else:
-                installed_at = install_tree(built, recipe.dataset_id, root=root, replace=replace)
+        installed_at = None
+        if already:
+            installed_at = dataset_dir(recipe.dataset_id, root)
+        elif install:
+            installed_at = install_tree(built, recipe.dataset_id, root=root, replace=replace)
     return BuildResult(entry=entry, installed_at=installed_at,
                        archive_path=archive_path if out_dir is not None else None,
                        seconds=time.perf_counter() - started, already_installed=already)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from offdyn_bench import set_full_state
-from offdyn_bench.datasets import BuildMismatchError, MissingPolicyError, build_dataset, verify_installed
+from offdyn_bench.datasets import BuildMismatchError, InstallError, MissingPolicyError, build_dataset, verify_installed
 from offdyn_bench.datasets.archive import sha256_file, tree_sha256
 from offdyn_bench.datasets.install import STAGING_DIR, is_installed
 from offdyn_bench.datasets.manifest import Entry
@@ -131,3 +131,18 @@ def test_missing_behaviour_policy_is_reported(tiny_recipe: MakeRecipe, isolated_
     with pytest.raises(MissingPolicyError, match="does-not-exist.safetensors is missing.*RL on source"):
         build_dataset(recipe)
     assert not is_installed(recipe.dataset_id)
+
+
+def test_rebuild_keeps_an_identical_install_and_replaces_another_only_when_forced(
+        tiny_recipe: MakeRecipe, isolated_paths: pathlib.Path) -> None:
+    recipe = tiny_recipe(transitions=40)
+    first = build_dataset(recipe)
+    again = build_dataset(recipe)
+    assert again.already_installed and again.installed_at == first.installed_at
+    other = dataclasses.replace(recipe, seed=3)
+    with pytest.raises(InstallError, match="with other bytes; pass --force"):
+        build_dataset(other)
+    assert tree_sha256(first.installed_at) == first.entry.files  # untouched
+    replaced = build_dataset(other, replace=True)
+    assert tree_sha256(replaced.installed_at) == replaced.entry.files != first.entry.files
+    assert not (isolated_paths / STAGING_DIR).exists()
