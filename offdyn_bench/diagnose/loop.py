@@ -34,6 +34,8 @@ class DiagnosisSettings:
     """At most this many effects are added."""
     fit_top: int = 4
     """How many screened candidates are fitted per iteration."""
+    fit_score_ratio: float = 0.2
+    """Only candidates whose screening score is at least this fraction of the best are fitted."""
     min_relative_gain: float = 0.02
     """Complexity penalty: an added parameter must cut held-out squared error by this fraction."""
     min_z: float = 3.0
@@ -41,8 +43,8 @@ class DiagnosisSettings:
     floor_tolerance: float = 1e-3
     """Held-out one-step NRMSE within this (absolute) of the noise floor counts as at the floor."""
     heldout_fraction: float = 0.3
-    screen_rows: int = 1000
-    fit_rows: int = 2500
+    screen_rows: int = 800
+    fit_rows: int = 2000
     seed: int = 0
 
 
@@ -182,7 +184,9 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
             stop_reason = "no candidate reduces the residual"
             break
         tick = time.perf_counter()
-        fits = [fit(evaluator, hypothesis, s.candidate, s.start) for s in scores[:settings.fit_top]]
+        # Candidates the screen scores far below the best cannot win; fitting them only costs time.
+        promising = [s for s in scores[:settings.fit_top] if s.reduction >= settings.fit_score_ratio * scores[0].reduction]
+        fits = [fit(evaluator, hypothesis, s.candidate, s.start) for s in promising]
         clock["fits"] += time.perf_counter() - tick
 
         tick = time.perf_counter()

@@ -147,7 +147,7 @@ def _fit_smooth(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate:
     bounds = [np.array([(candidate.low - candidate.nominal) / scale]),
               np.array([(candidate.high - candidate.nominal) / scale])]
     z0 = np.array([(candidate.clip(start) - candidate.nominal) / scale])
-    z, _ = mujoco.minimize.least_squares(z0, residual, bounds=bounds, eps=1e-3, max_iter=12, xtol=1e-6, mu_factor=10.0,
+    z, _ = mujoco.minimize.least_squares(z0, residual, bounds=bounds, eps=1e-3, max_iter=10, xtol=1e-5, mu_factor=10.0,
                                          verbose=0, output=io.StringIO())
     return to_value(float(np.ravel(z)[0]))
 
