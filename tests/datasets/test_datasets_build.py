@@ -148,3 +148,18 @@ def test_rebuild_keeps_an_identical_install_and_replaces_another_only_when_force
     replaced = build_dataset(other, replace=True)
     assert tree_sha256(replaced.installed_at) == replaced.entry.files != first.entry.files
     assert not (isolated_paths / STAGING_DIR).exists()
+
+
+def test_a_shipped_dataset_rebuilds_byte_for_byte() -> None:
+    """The manifest's hashes are reproducible from code: the same bytes on the same platform and
+    library versions (skipped where the versions differ from the ones the manifest records)."""
+    from offdyn_bench.datasets.manifest import read_manifest
+    from offdyn_bench.versions import versions
+
+    entry = read_manifest().get("offdyn/halfcheetah-gravity-0p5/random-v0")
+    assert entry.is_built, "the shipped manifest should record this dataset's hashes"
+    if dict(entry.built_with) != versions():
+        pytest.skip(f"manifest built with {entry.built_with}, this environment has {versions()}")
+    result = build_dataset(entry.recipe, recorded=entry, install=False)  # raises on any difference
+    assert result.entry.files == entry.files
+    assert result.entry.archive == entry.archive
