@@ -70,6 +70,9 @@ def _open(url: str):  # noqa: ANN202 - an http.client.HTTPResponse or a file-lik
         raise DownloadError(f"{url}: HTTP {error.code} {error.reason}") from error
     except (urllib.error.URLError, OSError) as error:
         reason = getattr(error, "reason", error)
+        if isinstance(reason, FileNotFoundError):  # file:// remotes
+            raise DownloadError(f"{url} not found on the remote: is the dataset id right, and has the remote "
+                                "been published with this dataset?") from error
         raise DownloadError(f"cannot reach {url}: {reason}") from error
 
 

@@ -17,7 +17,7 @@ import pathlib
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from offdyn_bench.datasets.recipes import ASSETS_DIR, Recipe, RecipeError, default_recipe, parse_dataset_id
+from offdyn_bench.datasets.recipes import ASSETS_DIR, Recipe, default_recipe, parse_dataset_id
 from offdyn_bench.errors import OffdynError, UnknownNameError
 
 MANIFEST_FORMAT = "offdyn-datasets-manifest/1"
@@ -175,5 +175,5 @@ def write_manifest(manifest: Manifest, path: str | os.PathLike[str] | None = Non
     return path
 
 
-__all__ = ["Manifest", "Entry", "ArchiveRecord", "ManifestError", "RecipeError", "MANIFEST_PATH",
+__all__ = ["Manifest", "Entry", "ArchiveRecord", "ManifestError", "MANIFEST_PATH",
            "read_manifest", "write_manifest", "archive_name", "entry_name", "dumps", "write_json_atomically"]

@@ -74,6 +74,14 @@ def test_404_is_a_clear_error(loopback_remote, isolated_paths) -> None:
     assert_nothing_installed(isolated_paths, dataset_id)
 
 
+def test_missing_dataset_on_a_file_remote(tmp_path, isolated_paths) -> None:
+    (tmp_path / "empty-remote").mkdir()
+    with pytest.raises(DownloadError, match="not found on the remote"):
+        download_dataset("offdyn/hopper-gravity-0p5/random-v0", remote=(tmp_path / "empty-remote").as_uri(),
+                         manifest=EMPTY)
+    assert_nothing_installed(isolated_paths, "offdyn/hopper-gravity-0p5/random-v0")
+
+
 def test_checksum_mismatch_installs_nothing(published, loopback_remote, isolated_paths) -> None:
     dataset_id, entry = serve(published, loopback_remote.folder)
     archive = loopback_remote.folder / archive_name(dataset_id)
