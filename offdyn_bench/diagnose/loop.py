@@ -21,6 +21,7 @@ from offdyn_bench.diagnose.data import Transitions, load_transitions
 from offdyn_bench.diagnose.residual import NUMERICAL_FLOOR, Hypothesis, ResidualEvaluator, block_improvement_z
 from offdyn_bench.diagnose.search import Fit, fit, screen
 from offdyn_bench.diagnose.source import SourceSimulator
+from offdyn_bench.diagnose.stochastic import action_channel_share, estimate_action_noise
 from offdyn_bench.versions import versions
 
 
@@ -74,9 +75,11 @@ class Step:
     equivalent_alternatives: tuple[str, ...]
     screened: tuple[tuple[str, float], ...]
     refitted: tuple[dict[str, Any], ...]
+    stochastic: bool = False
 
     def to_json(self) -> dict[str, Any]:
         return {"effect": self.effect, "interval": list(self.interval), "on_bound": self.on_bound,
+                "stochastic": self.stochastic,
                 "error_before": self.before.to_json(), "error_after": self.after.to_json(),
                 "heldout_gain_z": self.heldout_gain_z,
                 "equivalent_alternatives": list(self.equivalent_alternatives),
@@ -102,6 +105,7 @@ class Diagnosis:
     stop_reason: str
     steps: tuple[Step, ...]
     calibrated_env: dict[str, Any]
+    action_channel_share: float
     dimension_names: tuple[str, ...]
     timings: dict[str, float]
 
@@ -120,6 +124,7 @@ class Diagnosis:
             "stop_reason": self.stop_reason,
             "steps": [s.to_json() for s in self.steps],
             "calibrated_env": self.calibrated_env,
+            "action_channel_share": self.action_channel_share,
             "per_dimension": {
                 "names": list(self.dimension_names),
                 "heldout_nrmse_before": list(self.error_before.heldout_per_dimension),
@@ -168,6 +173,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     chosen: list[tuple[Candidate, float, tuple[float, float], bool]] = []
     first = _errors(evaluator, hypothesis)
     floor, floor_dims = evaluator.noise_floor(hypothesis)
+    # A residual that a per-step command correction explains points at the action channel.
+    share_before = action_channel_share(evaluator, hypothesis).share
     clock["validation"] += time.perf_counter() - tick
     current = first
     steps: list[Step] = []
@@ -238,6 +245,21 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         if _at_floor(current.heldout_trimmed_nrmse, floor, settings):
             stop_reason = "held-out error reached the noise floor"
 
+    unexplained = not _at_floor(current.heldout_trimmed_nrmse, floor, settings)
+    if unexplained and len(chosen) < settings.max_effects:
+        # What no deterministic effect explains may still be the spread of a noisy command.
+        tick = time.perf_counter()
+        noise = estimate_action_noise(evaluator, hypothesis)
+        clock["validation"] += time.perf_counter() - tick
+        if noise is not None:
+            candidate = Candidate("action_noise", None, 0.0, 0.0, np.inf, 0.0, "smooth")
+            chosen.append((candidate, noise.std, noise.interval, False))
+            steps.append(Step(effect=_effect_json(candidate, noise.std), interval=noise.interval, on_bound=False,
+                              before=current, after=current, heldout_gain_z=0.0, equivalent_alternatives=(),
+                              screened=(("action_noise on all", noise.share),), refitted=(), stochastic=True))
+            unexplained = False
+            stop_reason += f"; the rest is action noise (a command correction explains {noise.share:.0%} of it)"
+
     effects_added = tuple({**_effect_json(c, v), "interval": [float(lo), float(hi)], "on_bound": bound}
                           for c, v, (lo, hi), bound in chosen)
     clock["total"] = time.perf_counter() - started
@@ -250,8 +272,9 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         state_source="rebuilt from observations" if evaluator.rebuilt else "stored qpos/qvel",
         notes=tuple(notes), effects_added=effects_added, error_before=first, error_after=current,
         noise_floor=floor, noise_floor_per_dimension=tuple(float(x) for x in floor_dims),
-        unexplained_residual=not _at_floor(current.heldout_trimmed_nrmse, floor, settings),
+        unexplained_residual=unexplained,
         stop_reason=stop_reason, steps=tuple(steps),
         calibrated_env=source.calibrated_env([c.effect(v) for c, v, _, _ in chosen]),
+        action_channel_share=share_before,
         dimension_names=tuple(source.observation_map.names[i] for i in evaluator.dims),
         timings={k: round(v, 3) for k, v in clock.items()})

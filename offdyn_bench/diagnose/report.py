@@ -26,7 +26,7 @@ def steps_table(diagnosis: Diagnosis) -> str:
         e = step.effect
         target = "all" if e["target"] is None else e["target"]
         low, high = step.interval
-        bound = " on its bound" if step.on_bound else ""
+        bound = " on its bound" if step.on_bound else (" (stochastic: explains the spread)" if step.stochastic else "")
         lines.append(
             f"| {i} | {e['kind']} on {target} | {_value(e)} ({low:.4g}..{high:.4g}){bound} "
             f"| {step.before.one_step_nrmse:.4g} -> {step.after.one_step_nrmse:.4g} "

@@ -304,6 +304,16 @@ class ResidualEvaluator:
                 predicted[:, columns] = self._observe_state_rows(back_rows, hypothesis)[:, columns]
         error = (self.data.observations[rows][:, self.dims] - predicted) / self.spread
         per_dim = np.std(error, axis=0)
+        # A discrepancy that a time shift removes is an undiagnosed observation delay, not noise:
+        # the floor of each dimension is its smallest discrepancy over shifts of up to two steps.
+        delayed_dims = {c for e in hypothesis if e.kind == "obs_delay"
+                        for c, d in enumerate(self.dims) if e.dimension_mask(self.source.observation_size)[d]}
+        for shift in (1, 2):
+            back_rows = np.maximum(rows - shift, self.episode_start_row[rows])
+            shifted = self._observe_state_rows(back_rows, hypothesis)
+            shifted_error = np.std((self.data.observations[rows][:, self.dims] - shifted) / self.spread, axis=0)
+            free = np.array([c not in delayed_dims for c in range(self.dims.size)])
+            per_dim = np.where(free, np.minimum(per_dim, shifted_error), per_dim)
         floor = float(np.sqrt(np.mean(per_dim**2)))
         return max(floor, NUMERICAL_FLOOR), per_dim
 

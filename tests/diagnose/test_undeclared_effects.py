@@ -115,3 +115,20 @@ def test_state_rebuilt_from_observations() -> None:
     assert result.state_source == "rebuilt from observations"
     assert any("rootx" in note for note in result.notes)
     _assert_found(result, [("gear", "leg_joint", 0.75)])
+
+
+def test_action_noise_is_read_off_the_residual_spread() -> None:
+    """No deterministic effect explains a noisy command; a per-step command correction does."""
+    result = diagnose("Hopper-v5", Transitions(**record([{"kind": "action_noise", "std": 0.1}], STEPS, seed=7)), FAST)
+    assert [(e["kind"], e["target"]) for e in result.effects_added] == [("action_noise", None)]
+    assert result.effects_added[0]["value"] == pytest.approx(0.1, rel=0.10)
+    assert result.steps[-1].stochastic
+    assert result.action_channel_share > 0.9
+    assert not result.unexplained_residual
+
+
+def test_observation_channel_effects() -> None:
+    """A biased sensor and a late one, on two observation dimensions."""
+    hidden = [{"kind": "obs_bias", "target": 2, "value": 0.05}, {"kind": "obs_delay", "target": 8, "steps": 1}]
+    result = diagnose("Hopper-v5", Transitions(**record(hidden, STEPS, seed=8)), FAST)
+    _assert_found(result, [("obs_bias", 2, 0.05), ("obs_delay", 8, 1)])
