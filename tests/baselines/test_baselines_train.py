@@ -1,0 +1,165 @@
+"""The training loop and CLI: outputs, resume, bad input, and short smoke runs of every method."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+from typer.testing import CliRunner
+
+from baselines.algorithms import ALGORITHMS
+from baselines.checkpoint import STATE_FILE, latest_checkpoint
+from baselines.data import TransitionDataset, collect_target_dataset, load_dataset
+from baselines.train import train
+from offdyn_bench.cli import app
+from offdyn_bench.errors import OffdynError, UnknownNameError
+from offdyn_bench.tasks import get_task
+
+PENDULUM = "invertedpendulum-kinematic-slider-hard"
+TINY = {"sac.hidden_sizes": "[32, 32]", "sac.batch_size": "32", "random_steps": "40", "warmup_steps": "60"}
+
+
+def _tiny(algo: str) -> dict[str, str]:
+    if algo in ("cql",):
+        return {k: v for k, v in TINY.items() if k.startswith("sac.")}
+    if algo in ("sac-source", "sac-target", "h2o"):
+        return {k: v for k, v in TINY.items() if k != "warmup_steps"}
+    return TINY
+
+
+def _needs(algo: str, dataset) -> str | None:
+    return str(dataset) if ALGORITHMS[algo].needs_dataset else None
+
+
+@pytest.mark.parametrize("algo", list(ALGORITHMS))
+def test_every_method_runs_on_a_hopper_pair(tmp_path, algo, hopper_dataset):
+    out = tmp_path / "run"
+    result = train(algo, "hopper-gravity-0.5", steps=80, out=out, dataset=_needs(algo, hopper_dataset),
+                   overrides=_tiny(algo), eval_every=40, eval_episodes=1, progress=False)
+    assert {p.name for p in out.iterdir()} == {"config.json", "metrics.jsonl", "result.json", "checkpoints"}
+    curve = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [c["step"] for c in curve] == [40, 80]
+    assert all(np.isfinite(list(c["train"].values())).all() for c in curve)
+    assert result["versions"]["mujoco"] and result["versions"]["torch"]
+    assert result["task"]["name"] == "hopper-gravity-0.5" and result["task"]["version"] == 0
+    assert len(result["returns"]["0"]) == 1 and np.isfinite(result["mean_return"])
+    config = json.loads((out / "config.json").read_text())
+    assert config["algo"] == algo and config["config"]["sac"]["hidden_sizes"] == [32, 32]
+    if ALGORITHMS[algo].needs_dataset:
+        assert result["dataset"]["sha256"] == config["dataset_provenance"]["sha256"]
+
+
+@pytest.mark.parametrize("algo", ["dap-u", "darc-online"])
+def test_a_killed_run_resumes_to_the_same_result(tmp_path, algo, pendulum_dataset):
+    kwargs = dict(steps=120, dataset=_needs(algo, pendulum_dataset), overrides=TINY, eval_every=30,
+                  eval_episodes=2, checkpoint_every=40, progress=False, seed=3, n_seeds=2)
+    whole = train(algo, PENDULUM, out=tmp_path / "whole", **kwargs)
+    assert train(algo, PENDULUM, out=tmp_path / "cut", stop_after=70, **kwargs) is None  # "killed" at step 70
+    assert not (tmp_path / "cut" / "result.json").exists()
+    resumed = train(algo, PENDULUM, out=tmp_path / "cut", **kwargs)
+    assert resumed["returns"] == whole["returns"]
+    curves = [[json.loads(x)["target_return"] for x in (tmp_path / d / "metrics.jsonl").read_text().splitlines()]
+              for d in ("whole", "cut")]
+    assert curves[0] == curves[1] and len(curves[0]) == 4
+    a, b = (load_file(str(latest_checkpoint(tmp_path / d) / STATE_FILE)) for d in ("whole", "cut"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_seeds_trained_together_are_distinct_and_recorded(tmp_path):
+    result = train("sac-target", PENDULUM, steps=60, out=tmp_path / "r", overrides=_tiny("sac-target"),
+                   eval_episodes=1, progress=False, seed=5, n_seeds=3)
+    assert result["seeds"] == [5, 6, 7] and set(result["returns"]) == {"5", "6", "7"}
+
+
+def test_unknown_algorithm_and_task_are_named_with_suggestions(tmp_path):
+    with pytest.raises(UnknownNameError, match="unknown algorithm 'dapu'.*'dap-u'"):
+        train("dapu", PENDULUM, steps=10, out=tmp_path / "a")
+    with pytest.raises(UnknownNameError, match="unknown task 'hopper-gravity-0.6'.*hopper-gravity-0.5"):
+        train("dap", "hopper-gravity-0.6", steps=10, out=tmp_path / "b")
+    with pytest.raises(UnknownNameError, match="unknown setting of darc 'warmup'"):
+        train("darc", PENDULUM, steps=10, out=tmp_path / "c", overrides={"warmup": "5"})
+    with pytest.raises(OffdynError, match="invalid sac.batch_size='big'"):
+        train("darc", PENDULUM, steps=10, out=tmp_path / "d", overrides={"sac.batch_size": "big"})
+    assert not any((tmp_path / x).exists() for x in "abcd")
+
+
+def test_dataset_from_another_robot_is_refused_before_anything_is_written(tmp_path, hopper_dataset):
+    with pytest.raises(OffdynError, match=r"observations have shape \(11,\).*expects \(4,\)"):
+        train("dap", PENDULUM, steps=10, out=tmp_path / "run", dataset=str(hopper_dataset))
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(OffdynError, match="needs a target dataset"):
+        train("h2o", PENDULUM, steps=10, out=tmp_path / "run")
+    with pytest.raises(OffdynError, match="expected collect:<policy>:<N>"):
+        train("cql", PENDULUM, steps=10, out=tmp_path / "run", dataset="collect:random")
+    with pytest.raises(OffdynError, match="does not exist"):
+        train("cql", PENDULUM, steps=10, out=tmp_path / "run", dataset=str(tmp_path / "missing.npz"))
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_folder_of_another_config_is_left_untouched(tmp_path):
+    out = tmp_path / "run"
+    train("sac-source", PENDULUM, steps=40, out=out, overrides=_tiny("sac-source"), eval_episodes=1, progress=False)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    with pytest.raises(OffdynError, match="finished run"):
+        train("sac-source", PENDULUM, steps=40, out=out, overrides=_tiny("sac-source"), eval_episodes=1,
+              progress=False)
+    with pytest.raises(OffdynError, match="other settings.*differs in: steps, .*config"):
+        train("sac-source", PENDULUM, steps=80, out=out, overrides=_tiny("sac-source") | {"sac.discount": "0.9"},
+              eval_episodes=1, progress=False)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(OffdynError, match="not empty and holds no training run"):
+        train("sac-source", PENDULUM, steps=40, out=tmp_path / "other")
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+
+
+def test_collected_datasets_round_trip_and_use_a_trained_policy(tmp_path):
+    task = get_task(PENDULUM)
+    data = collect_target_dataset(task, "random", 50, seed=1)
+    assert len(data) == 50 and data.observations.shape == (50, 4) and data.actions.shape == (50, 1)
+    assert data.truncations[-1] and data.terminations.any()  # random pendulum episodes end quickly
+    data.save_npz(tmp_path / "d.npz")
+    again, provenance = load_dataset(str(tmp_path / "d.npz"), task)
+    assert again.sha256() == data.sha256() == provenance["sha256"]
+    assert collect_target_dataset(task, "random", 50, seed=1).sha256() == data.sha256()
+    train("sac-source", PENDULUM, steps=40, out=tmp_path / "behaviour", overrides=_tiny("sac-source"),
+          eval_episodes=1, progress=False)
+    by_policy, provenance = load_dataset(f"collect:{tmp_path / 'behaviour'}:30", task)
+    assert len(by_policy) == 30 and provenance["kind"] == "collected"
+    with pytest.raises(OffdynError, match="expected 'random' or a training run folder"):
+        load_dataset("collect:nonsense:30", task)
+
+
+def test_dataset_arrays_must_agree_in_length():
+    with pytest.raises(OffdynError, match="differ in length"):
+        TransitionDataset(np.zeros((3, 4)), np.zeros((2, 1)), np.zeros(3), np.zeros((3, 4)), np.zeros(3, bool),
+                          np.zeros(3, bool))
+
+
+def test_cli_train_and_its_errors(tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "cli"
+    ok = runner.invoke(app, ["train", "sac-source", "--task", PENDULUM, "--steps", "30", "--out", str(out),
+                             "--set", "random_steps=10", "--set", "sac.hidden_sizes=[16]", "--set", "sac.batch_size=8",
+                             "--eval-episodes", "1", "--no-progress"])
+    assert ok.exit_code == 0, ok.output
+    assert (out / "result.json").exists() and "mean target return" in ok.output
+    bad = runner.invoke(app, ["train", "sac-sorce", "--task", PENDULUM, "--steps", "30", "--out", str(tmp_path / "x")])
+    assert bad.exit_code == 2 and "unknown algorithm 'sac-sorce'" in bad.output and "'sac-source'" in bad.output
+    bad = runner.invoke(app, ["train", "dap", "--task", PENDULUM, "--steps", "30", "--out", str(tmp_path / "x"),
+                              "--set", "nonsense"])
+    assert bad.exit_code == 2 and "key=value" in bad.output
+    assert not (tmp_path / "x").exists()
+
+
+def test_python_dash_m_entry_points():
+    for module in ("baselines", "offdyn_bench"):
+        done = subprocess.run([sys.executable, "-m", module, "train", "--help"], capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0 and "--dataset" in done.stdout, done.stderr
