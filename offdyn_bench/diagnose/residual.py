@@ -125,8 +125,33 @@ class ResidualEvaluator:
         else:
             self.horizon_spread = self.spread
         self._cache: dict[tuple, np.ndarray] = {}
+        if self.rebuilt:
+            self._check_unobserved_coordinates()
         self._reference: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
         self._actions_cache: dict[tuple[Effect, ...], np.ndarray] = {}
+
+    def _check_unobserved_coordinates(self) -> None:
+        """The rebuilt state sets positions the observation lacks (Hopper's x) to their reference
+        value; say whether the dynamics really ignore them."""
+        nq = self.source.base_model.nq
+        unobserved = [j for j in range(nq) if j not in set(self.source.observation_map.source.tolist())]
+        if not unobserved:
+            return
+        rows = self.subsets["screen"][:200]
+        shifted = self.states[rows].copy()
+        shifted[:, 1 + np.array(unobserved)] += 0.5
+        controls = self.data.actions[rows][:, None]
+        model = self.source.base_model
+        both = self.source.predict(model, np.concatenate([self.states[rows], shifted]), np.concatenate([controls, controls]))
+        observed = self.source.observation_map.observe(self.source.qpos_qvel(both[:, -1]))
+        change = float(np.max(np.abs(observed[: len(rows)] - observed[len(rows):]) / self.spread))
+        labels = [self.source.observation_map_labels[j] for j in unobserved]
+        if change > 1e-6:
+            self.notes.append(f"the dynamics depend on {', '.join(labels)}, which the observation lacks: "
+                              f"predictions from rebuilt states are off by up to {change:.3g} (normalized); "
+                              "store qpos/qvel with the data")
+        else:
+            self.notes.append(f"checked: the dynamics do not depend on {', '.join(labels)}")
 
     def _window_starts(self, rows: np.ndarray) -> np.ndarray:
         """Non-overlapping windows of ``horizon`` rows inside one episode, all usable at the start."""

@@ -138,6 +138,7 @@ class SourceSimulator:
         # Model effects are already compiled into base_model; channel ones are replayed on the data.
         self.declared_channel_effects: tuple[Effect, ...] = tuple(channel.effects) if channel else ()
         self.observation_map = probe_observation_map(unwrapped)
+        self.observation_map_labels = _state_names(self.base_model)  # qpos/qvel coordinate names
         self.action_size = int(np.prod(env.action_space.shape))
         self.observation_size = int(np.prod(env.observation_space.shape))
         self.state_size = mujoco.mj_stateSize(self.base_model, FULL_PHYSICS)

@@ -132,3 +132,13 @@ def test_observation_channel_effects() -> None:
     hidden = [{"kind": "obs_bias", "target": 2, "value": 0.05}, {"kind": "obs_delay", "target": 8, "steps": 1}]
     result = diagnose("Hopper-v5", Transitions(**record(hidden, STEPS, seed=8)), FAST)
     _assert_found(result, [("obs_bias", 2, 0.05), ("obs_delay", 8, 1)])
+
+
+def test_a_fit_on_its_bound_is_flagged() -> None:
+    """A torso six times heavier lies beyond the mass candidate's bound (x5): the fit says so."""
+    hidden = [{"kind": "mass", "target": "torso", "scale": 6.0}]
+    settings = DiagnosisSettings(screen_rows=400, fit_rows=700, max_effects=1)
+    result = diagnose("Hopper-v5", Transitions(**record(hidden, STEPS, seed=9)), settings)
+    first = result.effects_added[0]
+    assert (first["kind"], first["target"], first["on_bound"]) == ("mass", "torso", True)
+    assert any("sits on its bound" in note for note in result.notes)
