@@ -29,8 +29,9 @@ FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS
 EffectsLike = Sequence[Effect | dict[str, Any]]
 
 
-def physics_state(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
-    out = np.empty(mujoco.mj_stateSize(model, FULL_PHYSICS))
+def physics_state(model: mujoco.MjModel, data: mujoco.MjData, size: int | None = None) -> np.ndarray:
+    """MuJoCo's full-physics state vector; pass ``size`` to skip recomputing it (hot path)."""
+    out = np.empty(mujoco.mj_stateSize(model, FULL_PHYSICS) if size is None else size)
     mujoco.mj_getState(model, data, out, FULL_PHYSICS)
     return out
 
@@ -48,27 +49,29 @@ def _with_model_effects(base: type) -> type:
                     raise TypeError(f"{type(self).__name__} takes model effects only, got {effect.kind!r}; "
                                     "use make_robot_env() for channel effects")
             self.model_effects: tuple[ModelEffect, ...] = effects  # type: ignore[assignment]
+            self.state_size = 0  # set once the model exists; reset() runs inside base.__init__
             base.__init__(self, **kwargs)
             # Pickling rebuilds from these arguments: the effects must be among them.
             utils.EzPickle.__init__(self, model_effects=[e.to_dict() for e in effects], **kwargs)
-            self.state_size = mujoco.mj_stateSize(self.model, FULL_PHYSICS)
 
         def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
             model = compile_model(self.fullpath, self.model_effects)
             model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.width)
             model.vis.global_.offheight = max(model.vis.global_.offheight, self.height)
+            self.state_size = mujoco.mj_stateSize(model, FULL_PHYSICS)
             return model, mujoco.MjData(model)
 
         def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
             obs, info = super().reset(seed=seed, options=options)
-            info["state"] = physics_state(self.model, self.data)
+            info["state"] = physics_state(self.model, self.data, self.state_size)
             return obs, info
 
         def step(self, action):
-            prev = physics_state(self.model, self.data)
+            # Read before and after every step (no cache): a caller may have written to data.
+            prev = physics_state(self.model, self.data, self.state_size)
             obs, reward, terminated, truncated, info = super().step(action)
             info["prev_state"] = prev
-            info["state"] = physics_state(self.model, self.data)
+            info["state"] = physics_state(self.model, self.data, self.state_size)
             return obs, reward, terminated, truncated, info
 
         def set_full_state(self, state: np.ndarray) -> None:
