@@ -166,6 +166,7 @@ def import_policy_command(
     out: Annotated[pathlib.Path, typer.Option(help="Where to write <name>.safetensors (+ .json), e.g. assets/policies/sac-source/hopper-nominal.safetensors.")],
     member: Annotated[int, typer.Option(help="Which training seed of the checkpoint to keep.")] = 0,
     eval_episodes: Annotated[int, typer.Option(help="Episodes (seeds 1000000, ...) to score it in --trained-on.")] = 10,
+    note: Annotated[Optional[str], typer.Option(help="A remark kept in the sidecar's training record.")] = None,
 ) -> None:
     """Extract one seed's actor from a SAC checkpoint into a behaviour/oracle policy file."""
     import json
@@ -176,6 +177,8 @@ def import_policy_command(
     with _errors_exit():
         state_file, run = _checkpoint_state_file(checkpoint)
         training: dict = {"checkpoint": "/".join(state_file.parts[-3:]), "checkpoint_sha256": sha256_file(state_file)}
+        if note:
+            training["note"] = note
         run_result = None
         if run is not None and (run / "config.json").is_file():
             training["config"] = json.loads((run / "config.json").read_text())

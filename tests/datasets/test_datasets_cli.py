@@ -100,3 +100,29 @@ def test_bad_ids_and_missing_remote_are_clear_errors(monkeypatch) -> None:
     monkeypatch.delenv("OFFDYN_REMOTE")
     result = invoke("download", "offdyn/hopper-gravity-0p5/random-v0")
     assert result.exit_code == 1 and "no remote configured" in result.output
+
+
+def test_import_policy_from_a_baselines_run_folder(tmp_path: pathlib.Path) -> None:
+    import pytest
+
+    pytest.importorskip("torch")
+    sac = pytest.importorskip("baselines.sac")
+    from safetensors.torch import save_file
+
+    step = tmp_path / "run" / "checkpoints" / "step_000000100"
+    step.mkdir(parents=True)
+    agent = sac.SACAgent(observation_dim=11, action_dim=3, seeds=[0])
+    save_file({k: v.contiguous() for k, v in agent.state_dict().items() if k.startswith("actor.")},
+              str(step / "state.safetensors"))
+    (tmp_path / "run" / "config.json").write_text(json.dumps({"algo": "sac-source", "steps": 100}))
+    out = tmp_path / "policies" / "hopper-nominal.safetensors"
+    result = invoke("import-policy", str(tmp_path / "run"), "--trained-on", "offdyn/Hopper-gravity-0.5-source-v0",
+                    "--out", str(out), "--eval-episodes", "2", "--note", "test fixture")
+    assert result.exit_code == 0, result.output
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["training"]["config"] == {"algo": "sac-source", "steps": 100}
+    assert sidecar["training"]["checkpoint"] == "checkpoints/step_000000100/state.safetensors"
+    assert sidecar["training"]["note"] == "test fixture"
+    evaluation = sidecar["score"]["evaluation"]
+    assert evaluation["env_id"] == "offdyn/Hopper-gravity-0.5-source-v0" and len(evaluation["returns"]) == 2
+    assert sidecar["score"]["run_result"] is None
