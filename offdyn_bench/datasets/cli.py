@@ -52,10 +52,11 @@ def list_command(
         if buildable:
             ids += sorted({dataset_id(name, q) for name in TASKS for q in QUALITIES} - set(ids))
         root = datasets_root()
-        typer.echo(f"{'dataset id':58} {'transitions':>11}  {'hashes':6}  {'installed':9}  behaviour")
+        width = max([len("dataset id"), *map(len, ids)])
+        typer.echo(f"{'dataset id':{width}} {'transitions':>11}  {'hashes':6}  {'installed':9}  behaviour")
         for ident in ids:
             entry = manifest.entry_or_default(ident)
-            typer.echo(f"{ident:58} {entry.recipe.num_transitions:>11}  {'yes' if entry.is_built else 'no':6}  "
+            typer.echo(f"{ident:{width}} {entry.recipe.num_transitions:>11}  {'yes' if entry.is_built else 'no':6}  "
                        f"{'yes' if is_installed(ident, root) else 'no':9}  {_behaviour_status(entry.recipe)}")
         typer.echo(f"{len(ids)} datasets; installed under {root}; manifest {manifest_path or MANIFEST_PATH}")
 
