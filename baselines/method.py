@@ -7,7 +7,6 @@ its networks and buffers. All tensors are ``[seeds, ...]`` and actions are in [-
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from typing import Literal, Protocol
 
 import torch
@@ -75,7 +74,3 @@ def require_target_data(context: MethodContext, algo: str) -> Batch:
     if context.target_data is None:
         raise ValueError(f"{algo} needs a target dataset")
     return context.target_data
-
-
-def seeds_tuple(seeds: Sequence[int]) -> tuple[int, ...]:
-    return tuple(int(s) for s in seeds)

@@ -81,21 +81,28 @@ def bench_updates(rounds: int, updates_per_round: int, hidden: int) -> dict:
             "ratio_median": statistics.median(ratios), "ratios": ratios}
 
 
-def bench_seeds(n_seeds: int, steps: int, task: str, hidden: int) -> dict:
+def bench_seeds(n_seeds: int, steps: int, task: str, hidden: int, rounds: int) -> dict:
     overrides = {"random_steps": "20", "sac.hidden_sizes": f"[{hidden}, {hidden}]"}
     common = dict(task=task, steps=steps, eval_every=steps, eval_episodes=1, checkpoint_every=steps,
                   progress=False, threads=None, overrides=overrides)
+    together, one_by_one = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        start = time.perf_counter()
-        train("sac-source", out=Path(tmp) / "together", seed=0, n_seeds=n_seeds, **common)
-        together = time.perf_counter() - start
-        start = time.perf_counter()
-        for seed in range(n_seeds):
-            train("sac-source", out=Path(tmp) / f"alone{seed}", seed=seed, n_seeds=1, **common)
-        one_by_one = time.perf_counter() - start
+        # Warm-up: one-time costs (imports, model compilation, allocator) stay out of the timings.
+        train("sac-source", out=Path(tmp) / "warm-up", seed=0, n_seeds=n_seeds, **common)
+        for r in range(rounds):  # alternate, so background load hits both alike
+            start = time.perf_counter()
+            train("sac-source", out=Path(tmp) / f"together{r}", seed=0, n_seeds=n_seeds, **common)
+            together.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            for seed in range(n_seeds):
+                train("sac-source", out=Path(tmp) / f"alone{r}-{seed}", seed=seed, n_seeds=1, **common)
+            one_by_one.append(time.perf_counter() - start)
+    total = n_seeds * steps
     return {"hidden": hidden, "n_seeds": n_seeds, "steps_per_seed": steps,
-            "together_steps_per_s": n_seeds * steps / together, "one_by_one_steps_per_s": n_seeds * steps / one_by_one,
-            "ratio": one_by_one / together}
+            "together_steps_per_s": total / statistics.median(together),
+            "one_by_one_steps_per_s": total / statistics.median(one_by_one),
+            "ratio": statistics.median(b / a for a, b in zip(together, one_by_one)),
+            "ratios": [b / a for a, b in zip(together, one_by_one)]}
 
 
 def main() -> None:
@@ -105,6 +112,7 @@ def main() -> None:
     parser.add_argument("--updates-per-round", type=int, default=100)
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--seed-steps", type=int, default=300)
+    parser.add_argument("--seed-rounds", type=int, default=3)
     parser.add_argument("--task", default="hopper-gravity-0.5")
     parser.add_argument("--hidden", type=int, nargs="+", default=[256],
                         help="hidden widths to measure (the issue's comparison is 256)")
@@ -120,11 +128,11 @@ def main() -> None:
             print(f"SAC gradient updates/s ({hidden}x{hidden}, batch 256): ours {u['ours_updates_per_s']:.1f}, "
                   f"SB3 {u['sb3_updates_per_s']:.1f}, ratio {u['ratio_median']:.2f}x "
                   f"(per round: {', '.join(f'{r:.2f}' for r in u['ratios'])})", flush=True)
-        s = bench_seeds(args.seeds, args.seed_steps, args.task, hidden)
+        s = bench_seeds(args.seeds, args.seed_steps, args.task, hidden, args.seed_rounds)
         report["seeds"].append(s)
         print(f"{s['n_seeds']} seeds x {s['steps_per_seed']} steps ({hidden}x{hidden}): together "
               f"{s['together_steps_per_s']:.1f} steps/s, one after another {s['one_by_one_steps_per_s']:.1f} steps/s, "
-              f"ratio {s['ratio']:.2f}x", flush=True)
+              f"ratio {s['ratio']:.2f}x (per round: {', '.join(f'{r:.2f}' for r in s['ratios'])})", flush=True)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 

@@ -163,3 +163,37 @@ def test_python_dash_m_entry_points():
         done = subprocess.run([sys.executable, "-m", module, "train", "--help"], capture_output=True, text=True,
                               timeout=120)
         assert done.returncode == 0 and "--dataset" in done.stdout, done.stderr
+
+
+@pytest.mark.slow
+def test_a_process_killed_mid_run_resumes_to_the_same_result(tmp_path, pendulum_dataset):
+    import os
+    import signal
+    import time
+
+    args = ["train", "dap", "--task", PENDULUM, "--steps", "600", "--dataset", str(pendulum_dataset),
+            "--checkpoint-every", "100", "--eval-every", "100", "--eval-episodes", "2", "--no-progress"]
+    for key, value in TINY.items():
+        args += ["--set", f"{key}={value}"]
+    whole = train("dap", PENDULUM, steps=600, out=tmp_path / "whole", dataset=str(pendulum_dataset), overrides=TINY,
+                  checkpoint_every=100, eval_every=100, eval_episodes=2, progress=False)
+    process = subprocess.Popen([sys.executable, "-m", "baselines", *args, "--out", str(tmp_path / "cut")])
+    deadline = time.time() + 300
+    while latest_checkpoint(tmp_path / "cut") is None and time.time() < deadline:
+        time.sleep(0.05)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    assert not (tmp_path / "cut" / "result.json").exists()
+    done = subprocess.run([sys.executable, "-m", "baselines", *args, "--out", str(tmp_path / "cut")],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert json.loads((tmp_path / "cut" / "result.json").read_text())["returns"] == whole["returns"]
+
+
+def test_the_cli_lists_every_registered_algorithm_without_importing_torch():
+    from baselines.cli import ALGORITHM_NAMES
+
+    assert ALGORITHM_NAMES == tuple(ALGORITHMS)
+    done = subprocess.run([sys.executable, "-c", "import sys, offdyn_bench.cli; print('torch' in sys.modules)"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == "False", done.stderr
