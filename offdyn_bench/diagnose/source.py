@@ -19,7 +19,7 @@ import mujoco.rollout
 import numpy as np
 
 from offdyn_bench.diagnose.data import DiagnosisInputError, Transitions
-from offdyn_bench.effects import ChannelEffects, Effect, effects_from_dicts
+from offdyn_bench.effects import ChannelEffects, Effect
 from offdyn_bench.effects.model import ModelEffect, apply_model_effects
 from offdyn_bench.robots import ROBOTS
 from offdyn_bench.tasks import ENTRY_POINT
