@@ -52,8 +52,10 @@ def summary_text(diagnosis: Diagnosis) -> str:
         f"noise floor {diagnosis.noise_floor:.4g}; {verdict} ({diagnosis.stop_reason}).",
     ]
     if diagnosis.effects_added:
-        calibrated = json.dumps([{k: e[k] for k in ("kind", "target", "value")} for e in diagnosis.effects_added])
-        lines.append(f"calibrated effects: {calibrated}")
+        env = diagnosis.calibrated_env
+        effects = env.get("kwargs", {}).get("extra_effects", env.get("kwargs", {}).get("effects", env.get("effects")))
+        where = env.get("env_id") or env.get("robot")
+        lines.append(f"calibrated simulator ({env['builder']} {where}): {json.dumps(effects)}")
     lines.extend(f"note: {note}" for note in diagnosis.notes)
     return "\n".join(lines)
 
@@ -75,8 +77,10 @@ def plot_residuals(diagnosis: Diagnosis, path: Path) -> None:
     ax.set_xticks(x, names, rotation=60, ha="right", fontsize=8)
     ax.set_ylabel("held-out one-step NRMSE")
     ax.set_yscale("symlog", linthresh=1e-4)
+    top = max([*diagnosis.error_before.heldout_per_dimension, *diagnosis.noise_floor_per_dimension, 1e-3])
+    ax.set_ylim(0, 3 * top)
     ax.set_title(f"Residual per observation dimension: {diagnosis.env_id}")
-    ax.legend()
+    ax.legend(loc="upper left", fontsize=8, ncols=3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -252,11 +252,12 @@ class ResidualEvaluator:
                 found[key] = trajectory
                 if cache_key is not None:
                     # Keep the first rollout (usually the current hypothesis) and the latest few.
+                    if len(self._reference) > 256:
+                        self._reference.clear()
                     kept = self._reference.setdefault((model_effects, state_key, cache_key, horizon), [])
                     kept.append((control, trajectory))
                     if len(kept) > 6:
                         del kept[1]
-                if cache_key is not None:
                     if len(self._cache) > 64:
                         self._cache.clear()
                     self._cache[(key, cache_key, horizon)] = trajectory
