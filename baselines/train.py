@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -66,10 +66,13 @@ def train(algo: str, task: str, *, steps: int, out: str | Path, seed: int = 0, n
     if steps <= 0 or n_seeds <= 0 or eval_episodes <= 0:
         raise OffdynError(f"steps, n_seeds and eval_episodes must be positive; got {steps}, {n_seeds}, {eval_episodes}")
     config = apply_overrides(method_spec.default_config(), dict(overrides or {}), algo)
-    if method_spec.needs_dataset and dataset is None:
+    # DARC with target_data=online (the darc-online entry, or --set target_data=online) takes its
+    # target transitions from the environment instead of a dataset.
+    needs_dataset = method_spec.needs_dataset and getattr(config, "target_data", "offline") != "online"
+    if needs_dataset and dataset is None:
         raise OffdynError(f"{algo} needs a target dataset: pass --dataset, e.g. collect:random:5000, "
                           "collect:<sac-source run folder>:5000 or a path to an .npz")
-    if not method_spec.needs_dataset and dataset is not None:
+    if not needs_dataset and dataset is not None:
         raise OffdynError(f"{algo} does not use a target dataset; drop --dataset")
     eval_every = eval_every or max(1, steps // 20)
     checkpoint_every = checkpoint_every or max(1, steps // 10)
@@ -292,7 +295,7 @@ def _write_json_lines_atomic(path: Path, lines: list[str]) -> None:
     os.replace(partial, path)
 
 
-def load_trained_policy(run_dir: str | Path):
+def load_trained_policy(run_dir: str | Path) -> Callable[[np.ndarray], np.ndarray]:
     """The deployed action of a training run's latest checkpoint (seed index 0), as a function of
     one observation in environment units. Used as a behaviour policy for datasets."""
     run_dir = Path(run_dir)
