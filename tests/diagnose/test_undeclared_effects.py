@@ -127,3 +127,15 @@ def test_a_fit_on_its_bound_is_flagged() -> None:
     first = result.effects_added[0]
     assert (first["kind"], first["target"], first["on_bound"]) == ("mass", "torso", True)
     assert any("sits on its bound" in note for note in result.notes)
+
+
+def test_effect_under_sensor_noise() -> None:
+    """A weaker motor seen through noisy sensors: found, and the interval covers the true value."""
+    hidden = [{"kind": "obs_noise", "std": 0.005}, {"kind": "gear", "target": "foot_joint", "scale": 0.7}]
+    result = diagnose("Hopper-v5", Transitions(**record(hidden, STEPS, seed=3)), FAST)
+    assert [(e["kind"], e["target"]) for e in result.effects_added] == [("gear", "foot_joint")]
+    found = result.effects_added[0]
+    assert found["value"] == pytest.approx(0.7, rel=0.10)
+    assert found["interval"][0] <= 0.7 <= found["interval"][1]
+    assert not result.unexplained_residual
+    assert result.error_after.heldout_trimmed_nrmse <= 1.1 * result.noise_floor
