@@ -36,6 +36,7 @@ class Transitions:
     qpos: np.ndarray | None = None
     qvel: np.ndarray | None = None
     origin: str = ""
+    recorded_env_id: str | None = None  # the env a Minari dataset says it was recorded with
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -172,6 +173,7 @@ def load_minari(dataset: str | os.PathLike, nq: int | None = None, nv: int | Non
     if not columns["actions"]:
         raise DiagnosisInputError(f"Minari dataset {str(dataset)!r} has no episodes")
     full_state = len(columns["qpos"]) == len(columns["actions"])
+    env_spec = getattr(loaded.spec, "env_spec", None)
     return Transitions(
         observations=np.concatenate(columns["observations"]),
         actions=np.concatenate(columns["actions"]),
@@ -180,7 +182,7 @@ def load_minari(dataset: str | os.PathLike, nq: int | None = None, nv: int | Non
         truncations=np.concatenate(columns["truncations"]),
         qpos=np.concatenate(columns["qpos"]) if full_state else None,
         qvel=np.concatenate(columns["qvel"]) if full_state else None,
-        origin=str(dataset))
+        origin=str(dataset), recorded_env_id=getattr(env_spec, "id", None))
 
 
 def load_transitions(dataset: str | os.PathLike, nq: int | None = None, nv: int | None = None) -> Transitions:

@@ -270,6 +270,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                           for c, v, (lo, hi), bound in chosen)
     clock["total"] = time.perf_counter() - started
     notes = list(evaluator.notes)
+    if data.recorded_env_id and data.recorded_env_id != env_id:
+        notes.insert(0, f"the dataset names {data.recorded_env_id!r} as its env; diagnosed against {env_id!r}")
     for c, v, _, bound in chosen:
         if bound:
             notes.append(f"{c.label} = {v:.4g} sits on its bound [{c.low:g}, {c.high:g}]: the true value may lie beyond")

@@ -111,6 +111,12 @@ def test_minari_dataset_by_id_and_path(tmp_path, monkeypatch) -> None:
     assert by_id.calibrated_env["kwargs"]["extra_effects"][0]["kind"] == "gravity"
     by_path = load_transitions(tmp_path / "minari" / "test" / "hopper-gravity" / "random-v0", nq=6, nv=6)
     assert by_path.size == by_id.transitions and by_path.has_state
+    assert not any("names" in note for note in by_id.notes)
+    # Against the target (which declares the gravity shift) nothing is missing, and the tool says
+    # the dataset was recorded for another id.
+    against_target = diagnose("offdyn/Hopper-gravity-0.5-target-v0", by_path, FAST)
+    assert against_target.effects_added == ()
+    assert "the dataset names 'offdyn/Hopper-gravity-0.5-source-v0' as its env" in against_target.notes[0]
 
 
 @pytest.mark.parametrize(
