@@ -174,15 +174,22 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
         commands = evaluator.applied_actions(hypothesis)[evaluator.subsets[subset]]
         mask = candidate.effect(best).dimension_mask(commands.shape[1], evaluator.source.base_model)  # type: ignore[attr-defined]
         magnitudes = np.unique(np.abs(commands[:, mask]))
-        inside = magnitudes[(magnitudes >= low) & (magnitudes <= high)]
-        if inside.size >= 2:
+        for _ in range(4):
+            inside = magnitudes[(magnitudes >= low) & (magnitudes <= high)]
+            if inside.size < 2:
+                break
             midpoints = 0.5 * (inside[1:] + inside[:-1])
-            if midpoints.size > 32:
+            exhaustive = midpoints.size <= 32
+            if not exhaustive:
                 midpoints = midpoints[np.linspace(0, midpoints.size - 1, 32).round().astype(int)]
-            trials = [best, *midpoints.tolist()]
+            trials = sorted({best, *midpoints.tolist()})
             errors = [_sse(r) for r in _residuals_one_by_one(evaluator, hypothesis, candidate, trials, subset)]
-            best = float(trials[int(np.argmin(errors))])
-            step = float(np.max(np.diff(inside))) if midpoints.size <= 32 else step / 4
+            i = int(np.argmin(errors))
+            best = float(trials[i])
+            low, high = trials[max(i - 1, 0)], trials[min(i + 1, len(trials) - 1)]
+            step = (high - low) / 2
+            if exhaustive:  # located between two neighbouring recorded commands
+                break
     return best, step
 
 
