@@ -197,3 +197,21 @@ def test_the_cli_lists_every_registered_algorithm_without_importing_torch():
     done = subprocess.run([sys.executable, "-c", "import sys, offdyn_bench.cli; print('torch' in sys.modules)"],
                           capture_output=True, text=True, timeout=120)
     assert done.stdout.strip() == "False", done.stderr
+
+
+def test_minari_ids_go_through_the_same_loader(monkeypatch):
+    """Episodes (T+1 observations, T actions) become transitions; a fake stands in for a local dataset."""
+    import types
+
+    import minari
+
+    rng = np.random.default_rng(0)
+    episodes = [types.SimpleNamespace(observations=rng.normal(size=(t + 1, 4)), actions=rng.uniform(-3, 3, (t, 1)),
+                                      rewards=np.ones(t), terminations=np.arange(t) == t - 1, truncations=np.zeros(t))
+                for t in (5, 7)]
+    monkeypatch.setattr(minari, "load_dataset", lambda dataset_id: types.SimpleNamespace(
+        iterate_episodes=lambda: iter(episodes)))
+    data, provenance = load_dataset("offdyn/test-pendulum/random-v0", get_task(PENDULUM))
+    assert len(data) == 12 and provenance["kind"] == "minari"
+    np.testing.assert_array_equal(data.next_observations[:5], episodes[0].observations[1:])
+    assert data.terminations.sum() == 2
