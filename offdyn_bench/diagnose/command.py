@@ -33,9 +33,13 @@ def diagnose_command(
         typer.echo(f"error: {error}", err=True)
         raise typer.Exit(2) from None
     typer.echo(summary_text(result))
-    if out is not None:
-        paths = write_report(result, out)
-        typer.echo(f"report written to {paths['report']}")
-    if json_path is not None:
-        write_json(result, json_path)
-        typer.echo(f"JSON written to {json_path}")
+    try:
+        if out is not None:
+            paths = write_report(result, out)
+            typer.echo(f"report written to {paths['report']}")
+        if json_path is not None:
+            write_json(result, json_path)
+            typer.echo(f"JSON written to {json_path}")
+    except OSError as error:
+        typer.echo(f"error: cannot write the results: {error}", err=True)
+        raise typer.Exit(1) from None

@@ -60,10 +60,12 @@ class Errors:
     horizon_nrmse: float
     heldout_per_dimension: tuple[float, ...]
     heldout_trimmed_nrmse: float
+    heldout_horizon_nrmse: float
 
     def to_json(self) -> dict[str, float]:
         return {"one_step_nrmse": self.one_step_nrmse, "heldout_one_step_nrmse": self.heldout_one_step_nrmse,
-                "horizon_nrmse": self.horizon_nrmse, "heldout_trimmed_one_step_nrmse": self.heldout_trimmed_nrmse}
+                "horizon_nrmse": self.horizon_nrmse, "heldout_horizon_nrmse": self.heldout_horizon_nrmse,
+                "heldout_trimmed_one_step_nrmse": self.heldout_trimmed_nrmse}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,7 +147,8 @@ def _errors(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> Errors:
     return Errors(one_step_nrmse=summary["train"].nrmse, heldout_one_step_nrmse=summary["heldout"].nrmse,
                   horizon_nrmse=summary["horizon"].nrmse,
                   heldout_per_dimension=tuple(float(x) for x in summary["heldout"].per_dimension),
-                  heldout_trimmed_nrmse=summary["heldout"].trimmed_nrmse)
+                  heldout_trimmed_nrmse=summary["heldout"].trimmed_nrmse,
+                  heldout_horizon_nrmse=summary["horizon_heldout"].nrmse)
 
 
 def _effect_json(candidate: Candidate, value: float) -> dict[str, Any]:

@@ -19,8 +19,9 @@ def _value(effect: dict[str, Any]) -> str:
 def steps_table(diagnosis: Diagnosis) -> str:
     """A Markdown table: one row per added effect, errors before -> after."""
     lines = [
-        "| step | effect added | value (95% interval) | one-step train | one-step held-out | H-step |",
-        "|---|---|---|---|---|---|",
+        "| step | effect added | value (95% interval) | one-step train | one-step held-out | H-step all "
+        "| H-step held-out |",
+        "|---|---|---|---|---|---|---|",
     ]
     for i, step in enumerate(diagnosis.steps, 1):
         e = step.effect
@@ -31,9 +32,10 @@ def steps_table(diagnosis: Diagnosis) -> str:
             f"| {i} | {e['kind']} on {target} | {_value(e)} ({low:.4g}..{high:.4g}){bound} "
             f"| {step.before.one_step_nrmse:.4g} -> {step.after.one_step_nrmse:.4g} "
             f"| {step.before.heldout_one_step_nrmse:.4g} -> {step.after.heldout_one_step_nrmse:.4g} "
-            f"| {step.before.horizon_nrmse:.4g} -> {step.after.horizon_nrmse:.4g} |")
+            f"| {step.before.horizon_nrmse:.4g} -> {step.after.horizon_nrmse:.4g} "
+            f"| {step.before.heldout_horizon_nrmse:.4g} -> {step.after.heldout_horizon_nrmse:.4g} |")
     if not diagnosis.steps:
-        lines.append("| - | nothing added | | | | |")
+        lines.append("| - | nothing added | | | | | |")
     return "\n".join(lines)
 
 

@@ -116,6 +116,8 @@ class ResidualEvaluator:
             "fit": np.sort(rng.choice(train, size=min(fit_rows, len(train)), replace=False)),
         }
         self.windows = {name: self._window_starts(rows) for name, rows in (("train", train), ("heldout", heldout))}
+        if not any(len(w) for w in self.windows.values()):
+            self.notes.append(f"no episode is {horizon} steps long: the H-step error is not measured (reported as 0)")
         change = data.next_observations[:, self.dims] - data.observations[:, self.dims]
         self.spread = _safe_spread(change[usable])
         starts = np.concatenate(list(self.windows.values()))
