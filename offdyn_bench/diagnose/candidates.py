@@ -38,7 +38,7 @@ class Candidate:
     high: float
     probe: float
     search: Search
-    trials: tuple[float, ...] = ()
+    trials: tuple[float, ...] = ()  # values the screen also tries directly (a smooth one's are extra)
 
     @property
     def label(self) -> str:
@@ -104,11 +104,15 @@ def candidate_library(source: SourceSimulator, *, with_observation_delay: bool =
             if not np.allclose(current, current[0]):
                 continue  # "all joints" sets one value; it is no null hypothesis when they differ
             nominal = float(current[0])
+            trials: tuple[float, ...] = ()
             if kind == "armature":
                 high, probe = 10.0 * nominal + 1.0, 0.1 * nominal + 0.01
             else:
                 high, probe = nominal + 0.5 * torque, 0.1 * nominal + 0.01 * torque
-            out.append(Candidate(kind, name, nominal, 0.0, high, probe, "smooth"))
+            if kind == "frictionloss":
+                # Dry friction sticks or slips: a small probe says little about a large value.
+                trials = (nominal + 5 * probe, nominal + 15 * probe)
+            out.append(Candidate(kind, name, nominal, 0.0, high, probe, "smooth", trials))
 
     for actuator in [None, *range(model.nu)]:
         name = None if actuator is None else actuator_name(model, actuator)

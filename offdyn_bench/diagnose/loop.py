@@ -33,7 +33,7 @@ class DiagnosisSettings:
     """H of the H-step open-loop error."""
     max_effects: int = 4
     """At most this many effects are added."""
-    fit_top: int = 4
+    fit_top: int = 5
     """How many screened candidates are fitted per iteration."""
     fit_score_ratio: float = 0.2
     """Only candidates whose screening score is at least this fraction of the best are fitted."""

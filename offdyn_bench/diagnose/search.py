@@ -64,12 +64,13 @@ def screen(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidates: Seq
             if value > candidate.high:
                 value = candidate.nominal - candidate.probe
             trials.append((candidate, value))
-        else:
-            trials.extend((candidate, value) for value in candidate.trials)
+        trials.extend((candidate, candidate.clip(value)) for value in candidate.trials)
     residuals = evaluator.residuals([hypothesis + (c.effect(v),) for c, v in trials], "screen")
     best: dict[Candidate, ScreenScore] = {}
+    probed: set[Candidate] = set()
     for (candidate, value), residual in zip(trials, residuals):
-        if candidate.search == "smooth":
+        if candidate.search == "smooth" and candidate not in probed:  # the first trial is the probe
+            probed.add(candidate)
             step = value - candidate.nominal
             column = (residual - base).ravel() / step
             norm = float(column @ column)

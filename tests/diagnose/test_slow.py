@@ -36,3 +36,21 @@ def test_noise_control_with_default_settings() -> None:
     result = diagnose("Hopper-v5", Transitions(**record([{"kind": "obs_noise", "std": 0.02}], STEPS, seed=22)))
     assert result.effects_added == ()
     assert not result.unexplained_residual
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("robot", "env_id", "hidden", "expected"),
+    [
+        ("Walker2d", "Walker2d-v5", [{"kind": "gear", "target": "thigh_left_joint", "scale": 0.6}],
+         [("gear", "thigh_left_joint", 0.6)]),
+        ("HalfCheetah", "HalfCheetah-v5", [{"kind": "mass", "target": "bthigh", "scale": 1.5}],
+         [("mass", "bthigh", 1.5)]),
+        ("Ant", "Ant-v5", [{"kind": "frictionloss", "target": "hip_1", "value": 20.0}],
+         [("frictionloss", "hip_1", 20.0)]),
+    ],
+    ids=["walker2d", "halfcheetah", "ant"],
+)
+def test_other_robots(robot, env_id, hidden, expected) -> None:
+    result = diagnose(env_id, Transitions(**record(hidden, 1500, robot=robot, seed=23)))
+    assert_diagnosed(result, expected)
