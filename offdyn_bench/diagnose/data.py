@@ -78,7 +78,8 @@ def _validate(data: Transitions) -> None:
             raise DiagnosisInputError(f"{name} must be a 2-D array (rows x dimensions), got shape {array.shape}")
     n = len(data.actions)
     if n == 0:
-        raise DiagnosisInputError(f"the dataset {data.origin or ''} is empty: no transitions to diagnose".replace("  ", " "))
+        where = f" {data.origin}" if data.origin else ""
+        raise DiagnosisInputError(f"the dataset{where} is empty: no transitions to diagnose")
     for name, array in {**arrays, "terminations": data.terminations, "truncations": data.truncations}.items():
         if len(array) != n:
             raise DiagnosisInputError(f"{name} has {len(array)} rows but actions has {n}; every array needs one row per transition")
