@@ -1,24 +1,20 @@
-"""The ``offdyn-bench`` command line."""
+"""The ``offdyn-bench`` command line: tasks, datasets, train, diagnose and the demo."""
 
 from __future__ import annotations
 
 import typer
 
+from baselines.cli import train_command
+from offdyn_bench.datasets.cli import datasets_app
+from offdyn_bench.diagnose.command import diagnose_command
+from offdyn_bench.task_commands import tasks_app
+
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="offdyn-bench: off-dynamics RL task pairs, datasets, baselines and gap diagnosis.")
 
-# --- sub-commands are attached below (one line each) ---
-from offdyn_bench.task_commands import tasks_app  # noqa: E402
-
 app.add_typer(tasks_app, name="tasks")
-from offdyn_bench.datasets.cli import datasets_app  # noqa: E402
-
 app.add_typer(datasets_app, name="datasets")
-from baselines.cli import train_command  # noqa: E402
-
 app.command("train")(train_command)
-from offdyn_bench.diagnose.command import diagnose_command  # noqa: E402
-
 app.command("diagnose")(diagnose_command)
 
 
@@ -29,7 +25,6 @@ def demo(task: str = typer.Option("hopper-gravity-0.5", help="the pair to roll o
     from offdyn_bench.demo import run_demo
 
     run_demo(task=task, seed=seed)
-
 
 
 def main() -> None:
