@@ -7,7 +7,10 @@ present. The effects travel as plain dicts in the env spec's kwargs, so specs se
 
 Every ``reset`` info carries ``state`` and every ``step`` info ``prev_state`` and ``state``: MuJoCo's
 full-physics state vector (``mjSTATE_FULLPHYSICS``: time, qpos, qvel, act, ...) followed by any
-channel delay buffers. :func:`set_full_state` restores an env exactly there.
+channel delay buffers. The arrays are read-only: the state after one step is the next step's
+``prev_state``, the same array. Move the simulation between steps with ``set_state`` or
+:func:`set_full_state` (direct writes to ``data`` that leave the clock unchanged are not seen by
+the next ``prev_state``). :func:`set_full_state` restores an env exactly there.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from offdyn_bench.effects.model import ModelEffect, compile_model
 from offdyn_bench.robots import ROBOTS, get_robot
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS
+_FULL_PHYSICS_BITS = int(FULL_PHYSICS)  # pybind converts a plain int faster than the enum (hot path)
+_get_state = mujoco.mj_getState
 
 EffectsLike = Sequence[Effect | dict[str, Any]]
 
@@ -32,7 +37,7 @@ EffectsLike = Sequence[Effect | dict[str, Any]]
 def physics_state(model: mujoco.MjModel, data: mujoco.MjData, size: int | None = None) -> np.ndarray:
     """MuJoCo's full-physics state vector; pass ``size`` to skip recomputing it (hot path)."""
     out = np.empty(mujoco.mj_stateSize(model, FULL_PHYSICS) if size is None else size)
-    mujoco.mj_getState(model, data, out, FULL_PHYSICS)
+    mujoco.mj_getState(model, data, out, _FULL_PHYSICS_BITS)
     return out
 
 
@@ -50,6 +55,7 @@ def _with_model_effects(base: type) -> type:
                                     "use make_robot_env() for channel effects")
             self.model_effects: tuple[ModelEffect, ...] = effects  # type: ignore[assignment]
             self.state_size = 0  # set once the model exists; reset() runs inside base.__init__
+            self._last_state: np.ndarray | None = None
             base.__init__(self, **kwargs)
             # Pickling rebuilds from these arguments: the effects must be among them.
             utils.EzPickle.__init__(self, model_effects=[e.to_dict() for e in effects], **kwargs)
@@ -61,18 +67,35 @@ def _with_model_effects(base: type) -> type:
             self.state_size = mujoco.mj_stateSize(model, FULL_PHYSICS)
             return model, mujoco.MjData(model)
 
+        def _read_state(self) -> np.ndarray:
+            state = np.empty(self.state_size)  # physics_state(), inlined: this runs every step
+            _get_state(self.model, self.data, state, _FULL_PHYSICS_BITS)
+            state.flags.writeable = False  # one array serves as this step's state and the next's prev_state
+            self._last_state = state
+            return state
+
         def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
             obs, info = super().reset(seed=seed, options=options)
-            info["state"] = physics_state(self.model, self.data, self.state_size)
+            info["state"] = self._read_state()
             return obs, info
 
         def step(self, action):
-            # Read before and after every step (no cache): a caller may have written to data.
-            prev = physics_state(self.model, self.data, self.state_size)
+            # The state after the last step is this step's state before, unless the simulation was
+            # moved since (set_state / set_full_state clear it; a changed clock shows other writes).
+            prev = self._last_state
+            if prev is None or prev[0] != self.data.time:
+                prev = self._read_state()
             obs, reward, terminated, truncated, info = super().step(action)
+            state = np.empty(self.state_size)  # _read_state(), inlined: this runs every step
+            _get_state(self.model, self.data, state, _FULL_PHYSICS_BITS)
+            state.flags.writeable = False
+            self._last_state = info["state"] = state
             info["prev_state"] = prev
-            info["state"] = physics_state(self.model, self.data, self.state_size)
             return obs, reward, terminated, truncated, info
+
+        def set_state(self, qpos: np.ndarray, qvel: np.ndarray) -> None:
+            super().set_state(qpos, qvel)
+            self._last_state = None
 
         def set_full_state(self, state: np.ndarray) -> None:
             """Restore the full physics state (``mjSTATE_FULLPHYSICS``) and recompute derived
@@ -83,6 +106,7 @@ def _with_model_effects(base: type) -> type:
             mujoco.mj_setState(self.model, self.data, state, FULL_PHYSICS)
             mujoco.mj_forward(self.model, self.data)
             mujoco.mj_rnePostConstraint(self.model, self.data)
+            self._last_state = None
 
         def current_observation(self) -> np.ndarray:
             return self._get_obs()

@@ -175,3 +175,17 @@ def test_extra_effects_extend_a_registered_task():
     base = gymnasium.make("offdyn/Hopper-gravity-0.5-source-v0")
     torso = env.unwrapped.model.body("torso").id
     assert env.unwrapped.model.body_mass[torso] == pytest.approx(2 * base.unwrapped.model.body_mass[torso])
+
+
+def test_prev_state_follows_set_state_between_steps():
+    env = make_robot_env("Hopper")
+    env.reset(seed=0)
+    env.step(np.zeros(3))
+    base = env.unwrapped
+    qpos = base.init_qpos.copy()
+    qpos[1] += 0.5
+    base.set_state(qpos, np.zeros(base.model.nv))
+    _, _, _, _, info = env.step(np.zeros(3))
+    np.testing.assert_array_equal(info["prev_state"][1: 1 + base.model.nq], qpos)
+    with pytest.raises(ValueError, match="read-only"):
+        info["state"][0] = 1.0

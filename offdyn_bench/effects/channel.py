@@ -26,15 +26,17 @@ from offdyn_bench.errors import OffdynError
 class ChannelEffect(Effect):
     """An effect on the action or observation channel.
 
-    ``transform(x, rng)`` maps a batch ``x[..., dim]`` of commands (or observations) to what
-    the physics (or agent) receives; ``mask`` selects the targeted dimensions.
+    ``transform(x, mask, rng)`` maps a batch ``x[..., dim]`` of commands (or observations) to
+    what the physics (or agent) receives; ``mask`` selects the targeted dimensions (``None``: all
+    of them, the fast path the per-step wrapper takes).
     """
 
     family: ClassVar[Literal["channel"]] = "channel"
     channel: ClassVar[Literal["action", "observation"]]
     delay_steps: ClassVar[bool] = False
 
-    def transform(self, x: np.ndarray, mask: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+    def transform(self, x: np.ndarray, mask: np.ndarray | None,
+                  rng: np.random.Generator | None) -> np.ndarray:
         raise NotImplementedError
 
     def dimension_mask(self, size: int, model: mujoco.MjModel | None = None) -> np.ndarray:
@@ -66,7 +68,8 @@ class _Noise(ChannelEffect):
     def transform(self, x, mask, rng):
         if rng is None:
             raise OffdynError(f"effect {self.kind!r} is stochastic and needs a random generator")
-        return x + rng.normal(0.0, self.std, size=x.shape) * mask
+        noise = rng.normal(0.0, self.std, size=np.shape(x))
+        return x + (noise if mask is None else noise * mask)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -78,7 +81,7 @@ class _Bias(ChannelEffect):
         self._require_finite("value")
 
     def transform(self, x, mask, rng):
-        return x + self.value * mask
+        return x + (self.value if mask is None else self.value * mask)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -99,7 +102,7 @@ class _Delay(ChannelEffect):
         shifted = np.empty_like(out)
         shifted[k:] = x[: len(x) - k]
         shifted[:k] = self.initial_fill(np.asarray(x[0], dtype=float))
-        return np.where(mask, shifted, out)
+        return shifted if mask is None else np.where(mask, shifted, out)
 
     def initial_fill(self, first: np.ndarray) -> np.ndarray:
         raise NotImplementedError
@@ -137,7 +140,7 @@ class ActionGain(ChannelEffect):
         self._require_finite("scale")
 
     def transform(self, x, mask, rng):
-        return np.where(mask, x * self.scale, x)
+        return x * self.scale if mask is None else np.where(mask, x * self.scale, x)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -154,7 +157,8 @@ class ActionDeadzone(ChannelEffect):
         self._require_finite("threshold", low=0.0)
 
     def transform(self, x, mask, rng):
-        return np.where(mask & (np.abs(x) <= self.threshold), 0.0, x)
+        small = np.abs(x) <= self.threshold
+        return np.where(small if mask is None else mask & small, 0.0, x)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -171,7 +175,8 @@ class ActionSaturation(ChannelEffect):
         self._require_finite("limit", low=0.0, low_open=True)
 
     def transform(self, x, mask, rng):
-        return np.where(mask, np.clip(x, -self.limit, self.limit), x)
+        clipped = np.clip(x, -self.limit, self.limit)
+        return clipped if mask is None else np.where(mask, clipped, x)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -223,8 +228,9 @@ class _Stage:
 
     def __init__(self, effect: ChannelEffect, mask: np.ndarray) -> None:
         self.effect = effect
-        self.mask = mask
-        self.size = mask.size
+        self.mask: np.ndarray | None = None if mask.all() else mask
+        self.memoryless = not effect.delay_steps
+        self.transform = effect.transform  # bound once: called every step
         self.buffer = np.zeros((effect.steps if effect.delay_steps else 0, mask.size))  # type: ignore[attr-defined]
 
     def reset(self, first: np.ndarray) -> None:
@@ -232,11 +238,11 @@ class _Stage:
             self.buffer[:] = self.effect.initial_fill(first)  # type: ignore[attr-defined]
 
     def __call__(self, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        if not self.effect.delay_steps:
-            return self.effect.transform(x, self.mask, rng)
+        if self.memoryless:
+            return self.transform(x, self.mask, rng)
         if not len(self.buffer):
             return x
-        out = np.where(self.mask, self.buffer[0], x)
+        out = self.buffer[0].copy() if self.mask is None else np.where(self.mask, self.buffer[0], x)
         self.buffer[:-1] = self.buffer[1:]
         self.buffer[-1] = x
         return out
