@@ -25,5 +25,11 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
 
+# Speed figures quoted in the README: each measures the suite against its reference in one run.
 bench: $(STAMP)
+	$(PY) -m pip install --quiet -e ".[test,bench]"
+	$(PY) benchmarks/env_step_rate.py
+	$(PY) benchmarks/bench_sac.py --rounds 5 --updates-per-round 100 --seed-steps 300 --seeds 5 --seed-rounds 2 --hidden 256 64
+	$(PY) benchmarks/bench_diagnose.py
+	$(PY) benchmarks/bench_datasets.py
 	$(PY) -m pytest -q -m benchmark --benchmark-enable
