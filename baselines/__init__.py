@@ -1,5 +1,5 @@
 """Reference baselines for off-dynamics RL on one SAC core: SAC (source / target), CQL, DARC, H2O,
-DAP and DAP+U. See baselines/README.md.
+DAP and DAP+U. See the "Baselines" section of the top-level README.
 
 Names load on first use, so ``import baselines.cli`` (the CLI attach) does not import torch.
 """

@@ -1,7 +1,7 @@
 """Target datasets in Minari format: recipes, reproducible builds, verification, downloads.
 
 ``minari.load_dataset("offdyn/hopper-gravity-0p5/random-v0")`` reads an installed dataset; its
-``env_spec`` is the task's source and its ``eval_env_spec`` the target. See README.md here.
+``env_spec`` is the task's source and its ``eval_env_spec`` the target. See the "Target datasets" section of the top-level README.
 """
 
 from offdyn_bench.datasets.archive import ArchiveError

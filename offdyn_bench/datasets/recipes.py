@@ -32,7 +32,7 @@ REPO_ROOT = pathlib.Path(__file__).resolve().parents[2]
 ASSETS_DIR = REPO_ROOT / "assets"
 POLICIES_DIR = ASSETS_DIR / "policies"
 
-# Sizes (see README.md, "Sizes and why"): DAP's main experiments used tens of thousands of target
+# Sizes (see the top-level README, "Sizes and why"): DAP's main experiments used tens of thousands of target
 # transitions and its size ablation lost little at 15,000 and 10,000; 20,000 keeps us inside that
 # range while the default set still builds in minutes on two cores. The random quality has the
 # same size so that quality is the only thing that differs between the two.
