@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
 from baselines.cli import train_command
@@ -19,12 +21,15 @@ app.command("diagnose")(diagnose_command)
 
 
 @app.command("demo")
-def demo(task: str = typer.Option("hopper-gravity-0.5", help="the pair to roll out"),
-         seed: int = typer.Option(0, help="seed of the rollout")) -> None:
-    """Run the suite end to end on an embedded default (no external service)."""
+def demo(task: str = typer.Option("hopper-gravity-0.5", help="the pair to roll out in step 2"),
+         seed: int = typer.Option(0, help="seed of the rollout"),
+         out: Path = typer.Option(Path("demo-out"), help="folder for the dataset, diagnosis and runs"),
+         training_steps: int = typer.Option(12_000, help="steps of each training run (0 skips training)")) -> None:
+    """Run the suite end to end on an embedded default (no external service): task grid, a pair's
+    divergence, a target dataset, a gap diagnosis, a short training run and its score."""
     from offdyn_bench.demo import run_demo
 
-    run_demo(task=task, seed=seed)
+    run_demo(task=task, seed=seed, out=out, training_steps=training_steps)
 
 
 def main() -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from typer.testing import CliRunner
 
 from offdyn_bench.cli import app
@@ -44,7 +46,20 @@ def test_tasks_show_unknown_name_suggests_close_matches():
     assert "Traceback" not in result.output
 
 
-def test_demo_runs_end_to_end():
-    result = runner.invoke(app, ["demo"])
+def test_demo_runs_end_to_end_without_training(tmp_path):
+    result = runner.invoke(app, ["demo", "--out", str(tmp_path), "--training-steps", "0"])
     assert result.exit_code == 0, result.output
     assert "same actions in source and target" in result.output
+    # The dataset rebuilds byte for byte and the diagnosis finds the gravity nobody declared to it.
+    assert "bytes identical to the manifest's sha256" in result.output
+    assert "| 1 | gravity on all | 0.5 " in result.output
+    assert (tmp_path / "diagnosis" / "diagnosis.json").is_file()
+
+
+@pytest.mark.slow
+def test_demo_with_training_scores_darc_above_rl_on_source(tmp_path):
+    result = runner.invoke(app, ["demo", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    rows = {line.split()[0]: float(line.split()[1]) for line in result.output.splitlines()
+            if line.strip().split()[:1] in (["random"], ["sac-source"], ["darc"])}
+    assert rows["darc"] > rows["sac-source"] > rows["random"]
