@@ -20,7 +20,7 @@ import math
 import torch
 
 from baselines.buffers import DatasetSampler
-from baselines.method import MethodContext, require_target_data
+from baselines.method import MethodContext, deploy_actions, require_target_data
 from baselines.sac import Batch, ExtraCriticLoss, Metrics, QFunction, SACAgent, SACConfig, sac_update
 
 
@@ -45,7 +45,7 @@ class CQL:
         raise RuntimeError("CQL is offline: it takes no environment steps")
 
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.agent.mean_actions(observations[:, None])[:, 0]
+        return deploy_actions(self.agent, observations)
 
     def record(self, *transition) -> None:
         raise RuntimeError("CQL is offline: it takes no environment steps")

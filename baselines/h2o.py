@@ -31,7 +31,7 @@ import torch
 
 from baselines.buffers import DatasetSampler, ReplayBuffer, concat_batches
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
-from baselines.method import MethodContext, require_target_data, uniform_actions
+from baselines.method import MethodContext, deploy_actions, explore_actions, require_target_data
 from baselines.sac import Batch, Metrics, QFunction, SACAgent, SACConfig, sac_update
 
 
@@ -70,15 +70,11 @@ class H2O:
         self.kl_generator = torch.Generator().manual_seed(context.stream("h2o-kl"))
 
     def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        if step < self.config.random_steps:
-            actions = uniform_actions(self.agent.n_seeds, self.agent.action_dim, self.agent.generator)
-        else:
-            with torch.no_grad():
-                actions = self.agent.sample_actions(observations[:, None])[0][:, 0]
+        actions = explore_actions(self.agent, observations, step, self.config.random_steps)
         return actions, actions
 
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.agent.mean_actions(observations[:, None])[:, 0]
+        return deploy_actions(self.agent, observations)
 
     def record(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
         self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)

@@ -11,7 +11,7 @@ from typing import Literal, Protocol
 
 import torch
 
-from baselines.sac import Batch, Metrics
+from baselines.sac import Batch, Metrics, SACAgent
 
 Interaction = Literal["source", "target", "none"]
 
@@ -68,6 +68,19 @@ class Method(Protocol):
 
 def uniform_actions(n_seeds: int, action_dim: int, generator: torch.Generator) -> torch.Tensor:
     return torch.rand((n_seeds, action_dim), generator=generator) * 2 - 1
+
+
+def explore_actions(agent: SACAgent, observations: torch.Tensor, step: int, random_steps: int) -> torch.Tensor:
+    """SAC's exploration: uniform actions for the first ``random_steps`` steps, then policy samples."""
+    if step < random_steps:
+        return uniform_actions(agent.n_seeds, agent.action_dim, agent.generator)
+    with torch.no_grad():
+        return agent.sample_actions(observations[:, None])[0][:, 0]
+
+
+def deploy_actions(agent: SACAgent, observations: torch.Tensor) -> torch.Tensor:
+    """The deterministic policy action, ``tanh(mean)``."""
+    return agent.mean_actions(observations[:, None])[:, 0]
 
 
 def require_target_data(context: MethodContext, algo: str) -> Batch:

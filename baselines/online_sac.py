@@ -15,7 +15,7 @@ import dataclasses
 import torch
 
 from baselines.buffers import ReplayBuffer
-from baselines.method import Interaction, MethodContext, uniform_actions
+from baselines.method import Interaction, MethodContext, deploy_actions, explore_actions
 from baselines.sac import Metrics, SACAgent, SACConfig, sac_update
 
 
@@ -37,15 +37,11 @@ class OnlineSAC:
                                    context.action_dim, context.stream("buffer"))
 
     def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        if step < self.config.random_steps:
-            actions = uniform_actions(self.agent.n_seeds, self.agent.action_dim, self.agent.generator)
-        else:
-            with torch.no_grad():
-                actions = self.agent.sample_actions(observations[:, None])[0][:, 0]
+        actions = explore_actions(self.agent, observations, step, self.config.random_steps)
         return actions, actions
 
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.agent.mean_actions(observations[:, None])[:, 0]
+        return deploy_actions(self.agent, observations)
 
     def record(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
         self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)

@@ -72,18 +72,12 @@ def same_action_divergence(task: str, seed: int = 0, horizon: int = 200) -> Dive
 
 
 def _random_return(task: str, episodes: int, first_seed: int) -> float:
+    from offdyn_bench.datasets.collect import episode_returns
+    from offdyn_bench.datasets.policies import UniformRandomPolicy
+
     env = get_task(task).make("target")
-    rng = np.random.default_rng(0)
-    returns = []
-    for e in range(episodes):
-        env.reset(seed=first_seed + e)
-        total, done = 0.0, False
-        while not done:
-            _, reward, terminated, truncated, _ = env.step(rng.uniform(env.action_space.low, env.action_space.high))
-            total += float(reward)
-            done = terminated or truncated
-        returns.append(total)
-    return float(np.mean(returns))
+    policy = UniformRandomPolicy(env.action_space.low, env.action_space.high, seed=0)  # type: ignore[attr-defined]
+    return float(np.mean(episode_returns(env, policy, episodes=episodes, seed=first_seed)))
 
 
 def demo_dataset(out: pathlib.Path) -> pathlib.Path:

@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 
 from baselines.train import EVAL_SEED, train
+from offdyn_bench.datasets.collect import episode_returns
+from offdyn_bench.datasets.policies import UniformRandomPolicy
 from offdyn_bench.tasks import get_task
 
 TASK = "invertedpendulum-kinematic-slider-hard"
@@ -34,17 +36,8 @@ SHOULD_BEAT_SOURCE = {"sac-target", "darc", "darc-online", "dap", "dap-u", "h2o"
 
 def _random_policy_return() -> float:
     env = get_task(TASK).make("target")
-    rng = np.random.default_rng(0)
-    returns = []
-    for e in range(EPISODES):
-        env.reset(seed=EVAL_SEED + e)
-        total, done = 0.0, False
-        while not done:
-            _, reward, terminated, truncated, _ = env.step(rng.uniform(env.action_space.low, env.action_space.high))
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
-    return float(np.mean(returns))
+    policy = UniformRandomPolicy(env.action_space.low, env.action_space.high, seed=0)
+    return float(np.mean(episode_returns(env, policy, episodes=EPISODES, seed=EVAL_SEED)))
 
 
 @pytest.fixture(scope="module")
