@@ -11,7 +11,8 @@ horizon, so a joint angle and a velocity weigh alike.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -265,15 +266,21 @@ class ResidualEvaluator:
                     self._cache[(key, cache_key, horizon)] = trajectory
         return [self._observation_channel(h, found[key], starts, horizon) for h, key in zip(hypotheses, keys)]
 
-    def _observation_channel(self, hypothesis: Hypothesis, trajectory: np.ndarray, starts: np.ndarray,
-                             horizon: int) -> np.ndarray:
-        omap = self.source.observation_map
-        predicted = omap.observe(trajectory[:, -1])
+    def _observation_effects(self, hypothesis: Hypothesis) -> Iterator[tuple[Any, list[int]]]:
+        """Each deterministic observation-channel effect (declared ones first) with the residual
+        columns it acts on."""
         column = {int(d): c for c, d in enumerate(self.dims)}
         for effect in (*self.source.declared_channel_effects, *hypothesis):
             if getattr(effect, "channel", None) != "observation" or _is_stochastic(effect):
                 continue
-            columns = [column[d] for d in np.flatnonzero(effect.dimension_mask(self.source.observation_size)) if d in column]
+            mask = effect.dimension_mask(self.source.observation_size)
+            yield effect, [column[d] for d in np.flatnonzero(mask) if d in column]
+
+    def _observation_channel(self, hypothesis: Hypothesis, trajectory: np.ndarray, starts: np.ndarray,
+                             horizon: int) -> np.ndarray:
+        omap = self.source.observation_map
+        predicted = omap.observe(trajectory[:, -1])
+        for effect, columns in self._observation_effects(hypothesis):
             if effect.kind == "obs_bias":
                 predicted[:, columns] += effect.value  # type: ignore[attr-defined]
             elif effect.kind == "obs_delay":
@@ -320,11 +327,7 @@ class ResidualEvaluator:
             return NUMERICAL_FLOOR, np.full(self.dims.size, NUMERICAL_FLOOR)
         rows = self.subsets["train"]
         predicted = self._observe_state_rows(rows, hypothesis)
-        column = {int(d): c for c, d in enumerate(self.dims)}
-        for effect in (*self.source.declared_channel_effects, *hypothesis):
-            if getattr(effect, "channel", None) != "observation" or _is_stochastic(effect):
-                continue
-            columns = [column[d] for d in np.flatnonzero(effect.dimension_mask(self.source.observation_size)) if d in column]
+        for effect, columns in self._observation_effects(hypothesis):
             if effect.kind == "obs_bias":
                 predicted[:, columns] += effect.value  # type: ignore[attr-defined]
             elif effect.kind == "obs_delay":
