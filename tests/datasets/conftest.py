@@ -1,4 +1,4 @@
-"""Every test gets its own Minari root and remote; nothing touches the internet or ~/.minari."""
+"""Dataset fixtures; the isolated Minari root and remote of every test come from tests/conftest.py."""
 
 from __future__ import annotations
 
@@ -17,15 +17,6 @@ pytest.importorskip("h5py", reason="h5py missing: the project needs minari[hdf5]
 import offdyn_bench  # noqa: E402,F401 - registers the task ids
 from offdyn_bench.datasets.build import BuildResult, build_dataset  # noqa: E402
 from offdyn_bench.datasets.recipes import Recipe, default_recipe  # noqa: E402
-
-
-@pytest.fixture(autouse=True)
-def isolated_paths(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pathlib.Path:
-    root = tmp_path / "minari"
-    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
-    # A remote that does not exist: a test that forgets to set its own fails instead of going out.
-    monkeypatch.setenv("OFFDYN_REMOTE", (tmp_path / "no-remote-configured").as_uri())
-    return root
 
 
 def tiny_recipe(task: str = "hopper-gravity-0.5", quality: str = "random", transitions: int = 150,
