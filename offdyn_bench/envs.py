@@ -34,13 +34,6 @@ _get_state = mujoco.mj_getState
 EffectsLike = Sequence[Effect | dict[str, Any]]
 
 
-def physics_state(model: mujoco.MjModel, data: mujoco.MjData, size: int | None = None) -> np.ndarray:
-    """MuJoCo's full-physics state vector; pass ``size`` to skip recomputing it (hot path)."""
-    out = np.empty(mujoco.mj_stateSize(model, FULL_PHYSICS) if size is None else size)
-    mujoco.mj_getState(model, data, out, _FULL_PHYSICS_BITS)
-    return out
-
-
 def _with_model_effects(base: type) -> type:
     """Subclass a Gymnasium MuJoCo env so its model is compiled with model effects and its
     info carries the physics state. A subclass (not a wrapper) keeps the per-step cost to one
@@ -68,7 +61,7 @@ def _with_model_effects(base: type) -> type:
             return model, mujoco.MjData(model)
 
         def _read_state(self) -> np.ndarray:
-            state = np.empty(self.state_size)  # physics_state(), inlined: this runs every step
+            state = np.empty(self.state_size)
             _get_state(self.model, self.data, state, _FULL_PHYSICS_BITS)
             state.flags.writeable = False  # one array serves as this step's state and the next's prev_state
             self._last_state = state
@@ -86,10 +79,7 @@ def _with_model_effects(base: type) -> type:
             if prev is None or prev[0] != self.data.time:
                 prev = self._read_state()
             obs, reward, terminated, truncated, info = super().step(action)
-            state = np.empty(self.state_size)  # _read_state(), inlined: this runs every step
-            _get_state(self.model, self.data, state, _FULL_PHYSICS_BITS)
-            state.flags.writeable = False
-            self._last_state = info["state"] = state
+            info["state"] = self._read_state()
             info["prev_state"] = prev
             return obs, reward, terminated, truncated, info
 
