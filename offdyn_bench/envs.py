@@ -79,7 +79,11 @@ def _with_model_effects(base: type) -> type:
             if prev is None or prev[0] != self.data.time:
                 prev = self._read_state()
             obs, reward, terminated, truncated, info = super().step(action)
-            info["state"] = self._read_state()
+            # _read_state() inlined: on HalfCheetah's 30 us step the call alone costs about 0.5%.
+            state = np.empty(self.state_size)
+            _get_state(self.model, self.data, state, _FULL_PHYSICS_BITS)
+            state.flags.writeable = False
+            self._last_state = info["state"] = state
             info["prev_state"] = prev
             return obs, reward, terminated, truncated, info
 
