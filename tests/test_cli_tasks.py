@@ -46,14 +46,15 @@ def test_tasks_show_unknown_name_suggests_close_matches():
     assert "Traceback" not in result.output
 
 
-def test_demo_runs_end_to_end_without_training(tmp_path):
-    result = runner.invoke(app, ["demo", "--out", str(tmp_path), "--training-steps", "0"])
+def test_demo_runs_end_to_end_without_training(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the default --out is relative, as `make demo` runs it
+    result = runner.invoke(app, ["demo", "--training-steps", "0"])
     assert result.exit_code == 0, result.output
     assert "same actions in source and target" in result.output
     # The dataset rebuilds byte for byte and the diagnosis finds the gravity nobody declared to it.
     assert "bytes identical to the manifest's sha256" in result.output
     assert "| 1 | gravity on all | 0.5 " in result.output
-    assert (tmp_path / "diagnosis" / "diagnosis.json").is_file()
+    assert (tmp_path / "demo-out" / "diagnosis" / "diagnosis.json").is_file()
 
 
 @pytest.mark.slow

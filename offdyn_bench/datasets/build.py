@@ -23,7 +23,7 @@ import numpy as np
 
 from offdyn_bench.datasets.archive import compare_files, tree_sha256, write_archive
 from offdyn_bench.datasets.collect import collect_transitions, episode_returns, gaussian_action_noise
-from offdyn_bench.datasets.install import InstallError, dataset_dir, datasets_root, install_tree, is_installed, staging
+from offdyn_bench.datasets.install import InstallError, dataset_dir, install_tree, is_installed, resolve_root, staging
 from offdyn_bench.datasets.manifest import (
     ArchiveRecord,
     Entry,
@@ -235,7 +235,7 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
     the manifest entry to reproduce: when it has file hashes, a build whose bytes differ is an
     error and nothing is installed or written.
     """
-    root = root or datasets_root()
+    root = resolve_root(root)
     started = time.perf_counter()
     pair = recipe.check_task()
     env = pair.make(recipe.collect_in)

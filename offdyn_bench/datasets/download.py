@@ -27,7 +27,7 @@ import urllib.request
 from collections.abc import Callable
 
 from offdyn_bench.datasets.archive import ArchiveError, compare_files, extract_archive
-from offdyn_bench.datasets.install import datasets_root, install_tree, is_installed, staging, verify_installed
+from offdyn_bench.datasets.install import install_tree, is_installed, resolve_root, staging, verify_installed
 from offdyn_bench.datasets.manifest import Entry, Manifest, ManifestError, archive_name, entry_name, read_manifest
 from offdyn_bench.errors import OffdynError
 
@@ -155,7 +155,7 @@ def download_dataset(dataset_id: str, *, remote: str | None = None, root: pathli
     An installed dataset is left alone unless ``force``; its files are verified first.
     """
     _check_id(dataset_id)
-    root = root or datasets_root()
+    root = resolve_root(root)
     shipped = manifest if manifest is not None else read_manifest()
     if is_installed(dataset_id, root) and not force:
         if dataset_id in shipped and shipped.get(dataset_id).is_built:

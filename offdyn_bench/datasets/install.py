@@ -28,15 +28,21 @@ class InstallError(OffdynError):
 
 
 def datasets_root() -> pathlib.Path:
-    """Minari's dataset directory, as Minari itself resolves it."""
+    """Minari's dataset directory, as Minari itself resolves it (made absolute)."""
     root = os.environ.get("MINARI_DATASETS_PATH")
     path = pathlib.Path(root) if root else pathlib.Path.home() / ".minari" / "datasets"
     path.mkdir(parents=True, exist_ok=True)
-    return path
+    return path.resolve()
+
+
+def resolve_root(root: pathlib.Path | str | None) -> pathlib.Path:
+    """``root`` as an absolute path, or Minari's own root. Absolute because Minari's size
+    computation joins a relative folder with its own relative listing and loses the files."""
+    return pathlib.Path(root).resolve() if root else datasets_root()
 
 
 def dataset_dir(dataset_id: str, root: pathlib.Path | None = None) -> pathlib.Path:
-    return (root or datasets_root()) / dataset_id
+    return resolve_root(root) / dataset_id
 
 
 def is_installed(dataset_id: str, root: pathlib.Path | None = None) -> bool:
@@ -46,7 +52,7 @@ def is_installed(dataset_id: str, root: pathlib.Path | None = None) -> bool:
 @contextlib.contextmanager
 def staging(root: pathlib.Path | None = None) -> Iterator[pathlib.Path]:
     """A fresh directory under the datasets root, removed on exit whatever happens."""
-    base = (root or datasets_root()) / STAGING_DIR
+    base = resolve_root(root) / STAGING_DIR
     base.mkdir(parents=True, exist_ok=True)
     path = pathlib.Path(tempfile.mkdtemp(dir=base))
     try:
@@ -63,7 +69,7 @@ def install_tree(staged: pathlib.Path, dataset_id: str, *, root: pathlib.Path | 
 
     An existing dataset is an error unless ``replace``; then it is first renamed aside (inside
     the staging area) and removed only after the new one is in place."""
-    root = root or datasets_root()
+    root = resolve_root(root)
     final = dataset_dir(dataset_id, root)
     final.parent.mkdir(parents=True, exist_ok=True)
     if final.exists():
@@ -109,7 +115,7 @@ def verify_installed(entry: Entry, root: pathlib.Path | None = None) -> VerifyRe
 
         from offdyn_bench.datasets.build import minari_root
 
-        with minari_root(root or datasets_root()):
+        with minari_root(resolve_root(root)):
             dataset = minari.load_dataset(entry.dataset_id)
         if entry.total_steps is not None and dataset.total_steps != entry.total_steps:
             problems.append(f"Minari reads {dataset.total_steps} steps, the manifest says {entry.total_steps}")

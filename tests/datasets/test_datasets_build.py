@@ -163,3 +163,13 @@ def test_a_shipped_dataset_rebuilds_byte_for_byte() -> None:
     result = build_dataset(entry.recipe, recorded=entry, install=False)  # raises on any difference
     assert result.entry.files == entry.files
     assert result.entry.archive == entry.archive
+
+
+def test_a_relative_datasets_root_builds_and_installs(tiny_recipe: MakeRecipe, tmp_path: pathlib.Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """`offdyn-bench demo --out demo-out` passes a relative root; Minari's size computation would
+    join it with its own relative listing and lose every file."""
+    monkeypatch.chdir(tmp_path)
+    result = build_dataset(tiny_recipe(), root=pathlib.Path("relative-root"))
+    assert result.installed_at == tmp_path / "relative-root" / result.entry.dataset_id
+    assert is_installed(result.entry.dataset_id, tmp_path / "relative-root")
