@@ -10,7 +10,9 @@ Each step prints the command that does the same thing on its own.
 from __future__ import annotations
 
 import dataclasses
+import json
 import pathlib
+from typing import Any
 
 import numpy as np
 import typer
@@ -118,22 +120,33 @@ def demo_diagnosis(dataset: pathlib.Path, out: pathlib.Path) -> None:
     typer.echo("   " + summary_text(result).replace("\n", "\n   "))
 
 
+def _train_or_reuse(algo: str, task: str, steps: int, out: pathlib.Path, **kwargs: Any) -> dict[str, Any]:
+    """Train, or read the result of the same finished run from an earlier demo."""
+    from baselines.train import RESULT_FILE, train
+
+    finished = out / RESULT_FILE
+    if finished.is_file():
+        typer.echo(f"   (reusing the finished run in {out})")
+        return json.loads(finished.read_text())
+    result = train(algo, task, steps=steps, out=out, eval_episodes=5, progress=False, **kwargs)
+    assert result is not None
+    return result
+
+
 def demo_training(out: pathlib.Path, steps: int) -> None:
-    from baselines.train import EVAL_SEED, train
+    from baselines.train import EVAL_SEED
 
     pair = get_task(DEMO_TRAINING_TASK)
     typer.echo(f"\n== 5. Training on {pair.name}: {pair.description}")
-    runs = out / "runs"
+    runs = out / "runs" / f"{steps}-steps"
     source_dir = runs / "sac-source"
     typer.echo(f"   (offdyn-bench train sac-source --task {pair.name} --steps {steps} --out {source_dir})")
-    source = train("sac-source", pair.name, steps=steps, out=source_dir, overrides=DEMO_TRAINING,
-                   eval_episodes=5, progress=False)
+    source = _train_or_reuse("sac-source", pair.name, steps, source_dir, overrides=DEMO_TRAINING)
     dataset = f"collect:{source_dir}:5000"
     typer.echo(f"   (offdyn-bench train darc --task {pair.name} --dataset {dataset} --steps {steps} "
                f"--out {runs / 'darc'})")
-    darc = train("darc", pair.name, steps=steps, out=runs / "darc", dataset=dataset,
-                 overrides=DEMO_TRAINING | DEMO_OFF_DYNAMICS, eval_episodes=5, progress=False)
-    assert source is not None and darc is not None
+    darc = _train_or_reuse("darc", pair.name, steps, runs / "darc", dataset=dataset,
+                           overrides=DEMO_TRAINING | DEMO_OFF_DYNAMICS)
     random_return = _random_return(pair.name, 5, EVAL_SEED)
     # InvertedPendulum pays 1 per step for at most 1000 steps: the best possible return is 1000.
     best = 1000.0
