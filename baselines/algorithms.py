@@ -25,7 +25,7 @@ class Algorithm:
     build: Callable[[Any, MethodContext], Method]
     needs_dataset: bool
     track: str
-    """"online" (steps an environment), "offline-target" or "online-target"."""
+    """"reference" (SAC on source or target), "offline-target" or "online-target": the protocol's tracks."""
 
 
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType({a.name: a for a in [
