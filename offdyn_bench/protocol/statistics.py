@@ -359,9 +359,9 @@ def _evaluate(batched: BatchedStatistic, batch: NDArray[np.float64], what: str) 
     values = np.asarray(batched(batch), dtype=np.float64)
     if values.shape != (batch.shape[0],):
         raise StatisticsError(
-            f"statistic returned shape {values.shape} for {batch.shape[0]} {what}; expected one "
-            f"number per score matrix (a vectorized statistic maps (batch, n_runs, n_tasks) to "
-            f"(batch,))"
+            f"statistic returned shape {values.shape} on the {what}, a stack of shape "
+            f"{batch.shape}; expected shape ({batch.shape[0]},), one number per score matrix (a "
+            f"vectorized statistic maps (batch, n_runs, n_tasks) to (batch,))"
         )
     if not np.isfinite(values).all():
         raise StatisticsError(f"statistic returned a non-finite value on the {what}; expected finite numbers")
