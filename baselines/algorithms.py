@@ -1,7 +1,8 @@
 """The algorithm registry: CLI name -> default config, builder, and what it needs.
 
 Also turns ``key=value`` overrides (``sac.batch_size=64``, ``target_data=online``) into a config,
-with errors that name the valid fields.
+with errors that name the closest valid fields, and checks every value against its limits
+(:mod:`baselines.limits`) so a bad value fails before a run writes anything.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from typing import Any
 
 from baselines import cql, dap, darc, h2o, online_sac
 from baselines.method import Method, MethodContext
-from offdyn_bench.errors import InvalidParameterError, UnknownNameError
+from baselines.limits import config_problems
+from offdyn_bench.errors import InvalidParameterError, OffdynError, UnknownNameError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,24 +63,43 @@ def config_to_dict(config: Any) -> dict[str, Any]:
 
 def apply_overrides(config: Any, overrides: Mapping[str, str], algo: str) -> Any:
     """Set ``a.b=value`` fields of a (nested) config dataclass; values are parsed as JSON when they
-    parse, else taken as strings, then checked against the field's type."""
+    parse, else taken as strings, then checked against the field's type and limits."""
     for key, raw in overrides.items():
         owner, path = config, key.split(".")
         for part in path[:-1]:
-            owner = _field_value(owner, part, key, algo)
+            owner = _field_value(config, owner, part, key, algo)
             if not dataclasses.is_dataclass(owner):
                 raise InvalidParameterError(algo, key, raw, f"{part!r} is not a group of settings")
         name = path[-1]
-        current = _field_value(owner, name, key, algo)
+        current = _field_value(config, owner, name, key, algo)
+        if dataclasses.is_dataclass(current):
+            raise InvalidParameterError(algo, key, raw, "one setting of the group, e.g. " + _setting_names(current, key + ".")[0])
         setattr(owner, name, _parse(raw, current, key, algo))
+    check_config(config, algo)
     return config
 
 
-def _field_value(owner: Any, name: str, key: str, algo: str) -> Any:
-    names = [f.name for f in dataclasses.fields(owner)]
-    if name not in names:
-        prefix = key.rsplit(".", 1)[0] + "." if "." in key else ""
-        raise UnknownNameError(f"setting of {algo}", key, [prefix + n for n in names])
+def check_config(config: Any, algo: str) -> None:
+    """Raise one error listing every value of ``config`` outside its limits."""
+    problems = config_problems(config)
+    if problems:
+        raise OffdynError(f"{algo}: invalid setting " + "; invalid setting ".join(problems))
+
+
+def _setting_names(config: Any, prefix: str = "") -> list[str]:
+    """Every settable key of a config, nested groups flattened (``sac.batch_size``)."""
+    names = []
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        names += _setting_names(value, f"{prefix}{field.name}.") if dataclasses.is_dataclass(value) \
+            else [prefix + field.name]
+    return names
+
+
+def _field_value(root: Any, owner: Any, name: str, key: str, algo: str) -> Any:
+    if name not in [f.name for f in dataclasses.fields(owner)]:
+        # Suggest among all keys, so "batch_size" finds "sac.batch_size".
+        raise UnknownNameError(f"setting of {algo}", key, _setting_names(root))
     return getattr(owner, name)
 
 

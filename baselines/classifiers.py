@@ -20,10 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
 
+from baselines.limits import NON_NEGATIVE, POSITIVE, Limit, integer, layer_sizes
 from baselines.networks import Params, init_mlp, mlp
 from baselines.sac import Batch, Metrics, seed_generator
 
@@ -39,6 +41,9 @@ class ClassifierConfig:
     """DARC's default Gaussian input noise; H2O uses 0.1."""
     ensemble_size: int = 1
     """Independently initialised classifier pairs per seed (DAP+U's deep ensemble)."""
+
+    LIMITS: ClassVar[dict[str, Limit]] = {"hidden_sizes": layer_sizes(allow_empty=True), "lr": POSITIVE,
+                                          "input_noise_std": NON_NEGATIVE, "ensemble_size": integer(1)}
 
 
 class DomainClassifiers:

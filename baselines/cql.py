@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import ClassVar
 
 import torch
 
 from baselines.buffers import DatasetSampler
+from baselines.limits import NON_NEGATIVE, Limit, integer
 from baselines.method import MethodContext, deploy_actions, require_target_data
 from baselines.sac import Batch, ExtraCriticLoss, Metrics, QFunction, SACAgent, SACConfig, sac_update
 
@@ -29,6 +31,8 @@ class Config:
     sac: SACConfig = dataclasses.field(default_factory=SACConfig)
     min_q_weight: float = 2.0
     n_action_samples: int = 10
+
+    LIMITS: ClassVar[dict[str, Limit]] = {"min_q_weight": NON_NEGATIVE, "n_action_samples": integer(1)}
 
 
 class CQL:

@@ -38,11 +38,13 @@ are untrained and their disagreement is meaningless); ``u`` is per-sample.
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import torch
 
 from baselines.buffers import DatasetSampler, ReplayBuffer
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
+from baselines.limits import FINITE, NON_NEGATIVE, Limit, integer
 from baselines.method import MethodContext, require_target_data, uniform_actions
 from baselines.sac import Batch, Metrics, SACAgent, SACConfig, sac_update
 
@@ -61,6 +63,10 @@ class Config:
     uncertainty_scale: float = 0.0
     """beta: spread of the robust action per unit of uncertainty; 0 is DAP, 0.1 is DAP+U's default
     (the paper found 0.05 to 0.10 best and 0.2 unstable)."""
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "buffer_size": integer(1), "random_steps": integer(0), "warmup_steps": integer(0),
+        "reward_correction_scale": FINITE, "regularization_weight": NON_NEGATIVE, "uncertainty_scale": NON_NEGATIVE}
 
 
 def dap_u_config() -> Config:

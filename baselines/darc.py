@@ -25,12 +25,13 @@ input noise std 1.0 (DARC's default); classifier width 256 with one hidden layer
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 
 from baselines.buffers import DatasetSampler, ReplayBuffer
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
+from baselines.limits import FINITE, Limit, integer, one_of
 from baselines.method import MethodContext, deploy_actions, explore_actions, require_target_data
 from baselines.sac import Batch, Metrics, SACAgent, SACConfig, sac_update
 
@@ -48,6 +49,10 @@ class Config:
     target_data: Literal["offline", "online"] = "offline"
     target_step_every: int = 10
     """online: one target step per this many source steps (DARC's published ratio)."""
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "buffer_size": integer(1), "random_steps": integer(0), "warmup_steps": integer(0),
+        "reward_correction_scale": FINITE, "target_data": one_of("offline", "online"), "target_step_every": integer(1)}
 
 
 class DARC:

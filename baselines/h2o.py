@@ -26,11 +26,13 @@ Chosen where the extraction lost the value (Table 3's ranges): ``dynamics_ratio_
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import torch
 
 from baselines.buffers import DatasetSampler, ReplayBuffer, concat_batches
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
+from baselines.limits import NON_NEGATIVE, Limit, integer, ordered_pair
 from baselines.method import MethodContext, deploy_actions, explore_actions, require_target_data
 from baselines.sac import Batch, Metrics, QFunction, SACAgent, SACConfig, sac_update
 
@@ -48,6 +50,17 @@ class Config:
     buffer_size_factor: int = 10
     """Simulated buffer capacity, in multiples of the dataset size."""
     random_steps: int = 5_000
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "min_q_weight": NON_NEGATIVE, "dynamics_ratio_clip": ordered_pair(0.0, low_open=True),
+        "kl_clip": ordered_pair(0.0, low_open=True), "kl_samples": integer(1), "buffer_size_factor": integer(1),
+        "random_steps": integer(0)}
+
+    def cross_checks(self) -> list[str]:
+        # Half of each batch is real data, half simulated: both halves need a transition.
+        if self.sac.batch_size < 2:
+            return [f"sac.batch_size={self.sac.batch_size}: expected an integer >= 2 (h2o splits it in halves)"]
+        return []
 
 
 class H2O:

@@ -11,10 +11,12 @@ Chosen where the papers are silent: ``random_steps`` uniform-random actions befo
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import torch
 
 from baselines.buffers import ReplayBuffer
+from baselines.limits import Limit, integer
 from baselines.method import Interaction, MethodContext, deploy_actions, explore_actions
 from baselines.sac import Metrics, SACAgent, SACConfig, sac_update
 
@@ -25,6 +27,8 @@ class Config:
     buffer_size: int = 1_000_000
     random_steps: int = 5_000
     """Uniform-random actions for the first steps; updates start after them."""
+
+    LIMITS: ClassVar[dict[str, Limit]] = {"buffer_size": integer(1), "random_steps": integer(0)}
 
 
 class OnlineSAC:

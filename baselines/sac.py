@@ -22,10 +22,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import torch
 
+from baselines.limits import FINITE, POSITIVE, Limit, integer, layer_sizes, number, optional
 from baselines.networks import Params, detached, init_mlp, mlp
 
 
@@ -48,6 +49,17 @@ class SACConfig:
     """None: minus the action dimension (the usual heuristic)."""
     log_std_min: float = -20.0
     log_std_max: float = 2.0
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "hidden_sizes": layer_sizes(allow_empty=False), "actor_lr": POSITIVE, "critic_lr": POSITIVE,
+        "temperature_lr": POSITIVE, "discount": number(0.0, 1.0), "target_update_rate": number(0.0, 1.0, low_open=True),
+        "batch_size": integer(1), "initial_temperature": POSITIVE, "target_entropy": optional(FINITE),
+        "log_std_min": FINITE, "log_std_max": FINITE}
+
+    def cross_checks(self) -> list[str]:
+        if self.log_std_min >= self.log_std_max:
+            return [f"log_std_min={self.log_std_min}: expected a number below log_std_max={self.log_std_max}"]
+        return []
 
 
 class Batch(NamedTuple):

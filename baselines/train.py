@@ -6,8 +6,14 @@
   budget, dataset spec and provenance, the method's full config); written first;
 * ``metrics.jsonl`` -- the learning curve: every ``eval_every`` steps, per-seed mean return of the
   deployed (deterministic) policy over ``eval_episodes`` target episodes with fixed seeds;
-* ``checkpoints/step_<N>/`` -- safetensors state (networks, optimizers, buffers, random streams);
-* ``result.json`` -- the final per-seed, per-episode target returns, versions, task and dataset.
+* ``checkpoints/step_<N>/`` -- safetensors state (networks, optimizers, buffers, random streams)
+  with the sha256 of its files; the two newest are kept (:mod:`baselines.checkpoint`);
+* ``result.json`` -- the final per-seed, per-episode target returns, versions, task and dataset,
+  and ``warnings`` (e.g. a budget too short for the method to make any update);
+* ``.lock`` -- locked while a process trains in the folder, so a second one is refused.
+
+Every argument and config value is checked before anything is written, so bad input leaves no
+folder behind (:mod:`baselines.run_folder`, :mod:`baselines.limits`).
 
 Several seeds train in one process, vectorised: one environment per seed stepped together, one
 batched network per role (see :mod:`baselines.networks`).
@@ -16,13 +22,16 @@ Resuming: run the same command again. The run continues from the newest checkpoi
 the same result as an uninterrupted run. To make that exact without restoring simulators
 mid-episode, every training episode is seeded by (seed, episode index) and a checkpoint ends the
 running training episodes (as time-limit truncations, so the critics still bootstrap); an
-uninterrupted run does the same at the same steps.
+uninterrupted run does the same at the same steps. A damaged newest checkpoint (truncated,
+missing files, flipped bytes) is reported and the run resumes from the one before it; learning-curve
+lines after the resumed step, and a line cut off by the kill, are dropped.
 """
 
 from __future__ import annotations
 
 import json
-import os
+import shutil
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -33,15 +42,17 @@ import torch
 from tqdm import tqdm
 
 from baselines.algorithms import apply_overrides, config_to_dict, get_algorithm
-from baselines.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from baselines.checkpoint import (CHECKPOINT_DIR, STATE_FILE, TRAINER_FILE, DamagedCheckpointError, checkpoint_step,
+                                  checkpoints, latest_checkpoint, load_checkpoint, save_checkpoint)
 from baselines.data import load_dataset
 from baselines.method import Method, MethodContext
 from baselines.networks import mlp
+from baselines.run_folder import (CONFIG_FILE, METRICS_FILE, RESULT_FILE, check_writable, holds_files, read_config,
+                                  read_metrics, run_folder_lock, write_json_atomic, write_lines_atomic)
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TaskPair, get_task
 from offdyn_bench.versions import versions
 
-CONFIG_FILE, METRICS_FILE, RESULT_FILE = "config.json", "metrics.jsonl", "result.json"
 EVAL_SEED = 1_000_000
 """Evaluation episode e is reset with seed EVAL_SEED + e, for every method and training seed."""
 DATASET_SEED = 0
@@ -59,12 +70,10 @@ def train(algo: str, task: str, *, steps: int, out: str | Path, seed: int = 0, n
     run after that many steps without finishing it, as a kill would (for tests). Returns the
     result, or None when stopped early.
     """
-    if threads:
-        torch.set_num_threads(threads)
     method_spec = get_algorithm(algo)
     pair = get_task(task)
-    if steps <= 0 or n_seeds <= 0 or eval_episodes <= 0:
-        raise OffdynError(f"steps, n_seeds and eval_episodes must be positive; got {steps}, {n_seeds}, {eval_episodes}")
+    _check_arguments(steps=steps, n_seeds=n_seeds, eval_episodes=eval_episodes, eval_every=eval_every,
+                     checkpoint_every=checkpoint_every, threads=threads)
     config = apply_overrides(method_spec.default_config(), dict(overrides or {}), algo)
     # DARC with target_data=online (the darc-online entry, or --set target_data=online) takes its
     # target transitions from the environment instead of a dataset.
@@ -81,59 +90,104 @@ def train(algo: str, task: str, *, steps: int, out: str | Path, seed: int = 0, n
                 "seeds": list(seeds), "dataset": dataset, "eval_every": eval_every,
                 "eval_episodes": eval_episodes, "checkpoint_every": checkpoint_every,
                 "config": config_to_dict(config)}
+    warnings = budget_warnings(algo, config, steps)
 
+    # Everything below up to the lock only reads: bad input fails before anything is written.
     out = Path(out)
+    check_writable(out)
     resuming = _check_out_dir(out, settings)
     dataset_provenance = None
     target_data = None
     if dataset is not None:
         data, dataset_provenance = load_dataset(dataset, pair, DATASET_SEED)
         if resuming:
-            stored = json.loads((out / CONFIG_FILE).read_text())["dataset_provenance"]
-            if stored["sha256"] != dataset_provenance["sha256"]:
-                raise OffdynError(f"{out} was trained on another dataset (sha256 {stored['sha256'][:12]}..., now "
-                                  f"{dataset_provenance['sha256'][:12]}...); use a new --out folder")
+            _check_same_dataset(out, dataset_provenance)
         target_data = data.to_batch(pair.make("target").action_space)
-    if not resuming:
-        out.mkdir(parents=True, exist_ok=True)
-        _write_json_atomic(out / CONFIG_FILE, settings | {"task_spec": pair.to_dict(),
-                                                          "dataset_provenance": dataset_provenance})
-
+    if threads:
+        torch.set_num_threads(threads)
     probe = pair.make("target")
     context = MethodContext(observation_dim=int(np.prod(probe.observation_space.shape)),
                             action_dim=int(np.prod(probe.action_space.shape)), seeds=seeds,
                             target_data=target_data)
     probe.close()
     method = method_spec.build(config, context)
-    loop = _Loop(method, pair, seeds, out)
-    start = loop.restore() if resuming else 0
 
-    bar = tqdm(total=steps, initial=start, unit="step", disable=not progress, desc=f"{algo} {pair.name}")
-    final_returns = None
-    for step in range(start, steps):
-        metrics = loop.step(step)
-        done = step + 1
-        bar.update(1)
-        if done % eval_every == 0 or done == steps:
-            returns = loop.evaluate(eval_episodes)
-            loop.log(done, returns, metrics)
-            bar.set_postfix(target_return=f"{returns.mean():.1f}")
-            final_returns = returns if done == steps else None
-        if done % checkpoint_every == 0 or done == steps:
-            loop.checkpoint(done)
-        if stop_after is not None and done >= stop_after and done < steps:
-            bar.close()
+    with run_folder_lock(out):
+        # Look again under the lock: another process may have started or finished a run here since.
+        if _check_out_dir(out, settings) != resuming:
+            raise OffdynError(f"--out {str(out)!r} changed while this run was being prepared (another process "
+                              "started a run there); nothing was written")
+        if not resuming:
+            write_json_atomic(out / CONFIG_FILE, settings | {"task_spec": pair.to_dict(),
+                                                             "dataset_provenance": dataset_provenance})
+        loop = _Loop(method, pair, seeds, out)
+        start, notes = loop.restore() if resuming else (0, [])
+        for message in warnings:
+            print(f"warning: {message}", file=sys.stderr)
+        for message in notes:
+            print(f"note: {message}", file=sys.stderr)
+        final_returns = _run(loop, algo, pair, start, steps, eval_every, eval_episodes, checkpoint_every,
+                             progress, stop_after)
+        if final_returns is None:
             return None
-    bar.close()
+        result = {"algo": algo, "task": pair.to_dict(), "dataset": dataset_provenance, "steps": steps,
+                  "seeds": list(seeds), "eval_episode_seeds": [EVAL_SEED + e for e in range(eval_episodes)],
+                  "returns": {str(s): [float(x) for x in final_returns[i]] for i, s in enumerate(seeds)},
+                  "mean_return": float(final_returns.mean()), "versions": versions(),
+                  "config": settings["config"], "warnings": warnings}
+        write_json_atomic(out / RESULT_FILE, result)
+    return result
+
+
+def _run(loop: _Loop, algo: str, pair: TaskPair, start: int, steps: int, eval_every: int, eval_episodes: int,
+         checkpoint_every: int, progress: bool, stop_after: int | None) -> np.ndarray | None:
+    """Steps ``start .. steps - 1`` with evaluations and checkpoints; the final returns, or None
+    when stopped by ``stop_after``."""
+    final_returns = None
+    with tqdm(total=steps, initial=start, unit="step", disable=not progress, desc=f"{algo} {pair.name}") as bar:
+        for step in range(start, steps):
+            metrics = loop.step(step)
+            done = step + 1
+            bar.update(1)
+            if done % eval_every == 0 or done == steps:
+                returns = loop.evaluate(eval_episodes)
+                loop.log(done, returns, metrics)
+                bar.set_postfix(target_return=f"{returns.mean():.1f}")
+                final_returns = returns if done == steps else None
+            if done % checkpoint_every == 0 or done == steps:
+                loop.checkpoint(done)
+            if stop_after is not None and done >= stop_after and done < steps:
+                return None
     if final_returns is None:  # resumed after the last checkpoint but before result.json
         final_returns = loop.evaluate(eval_episodes)
-    result = {"algo": algo, "task": pair.to_dict(), "dataset": dataset_provenance, "steps": steps,
-              "seeds": list(seeds), "eval_episode_seeds": [EVAL_SEED + e for e in range(eval_episodes)],
-              "returns": {str(s): [float(x) for x in final_returns[i]] for i, s in enumerate(seeds)},
-              "mean_return": float(final_returns.mean()), "versions": versions(),
-              "config": settings["config"]}
-    _write_json_atomic(out / RESULT_FILE, result)
-    return result
+    return final_returns
+
+
+def _check_arguments(**arguments: int | None) -> None:
+    """Budget arguments: whole numbers >= 1 (None: the default; threads 0: torch's default)."""
+    for name, value in arguments.items():
+        minimum = 0 if name == "threads" else 1
+        if value is None and name not in ("steps", "n_seeds", "eval_episodes"):
+            continue
+        if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+            flag = "--" + name.replace("_", "-")
+            raise OffdynError(f"{flag}={value!r}: expected an integer >= {minimum}")
+
+
+def budget_warnings(algo: str, config: Any, steps: int) -> list[str]:
+    """What a budget of ``steps`` is too short for. ``random_steps`` (no update before it) and
+    ``warmup_steps`` (no reward correction before it) mean the same in every config that has them."""
+    random_steps = getattr(config, "random_steps", 0)
+    warmup_steps = getattr(config, "warmup_steps", None)
+    if steps <= random_steps:
+        return [f"--steps {steps} is not above random_steps={random_steps}: this {algo} run makes no gradient "
+                f"update and deploys its untrained initial policy; the minimum useful budget is more than "
+                f"{random_steps} steps (or lower it with --set random_steps=N)"]
+    if warmup_steps is not None and steps <= warmup_steps:
+        return [f"--steps {steps} is not above warmup_steps={warmup_steps}: this {algo} run never applies its "
+                f"reward correction and trains plain SAC; the minimum useful budget is more than {warmup_steps} "
+                "steps (or lower it with --set warmup_steps=N)"]
+    return []
 
 
 def _check_out_dir(out: Path, settings: dict[str, Any]) -> bool:
@@ -144,10 +198,10 @@ def _check_out_dir(out: Path, settings: dict[str, Any]) -> bool:
     if not out.is_dir():
         raise OffdynError(f"--out {str(out)!r} exists and is not a folder")
     if not (out / CONFIG_FILE).exists():
-        if any(out.iterdir()):
+        if holds_files(out):
             raise OffdynError(f"--out {str(out)!r} is not empty and holds no training run; use a new folder")
         return False
-    stored = json.loads((out / CONFIG_FILE).read_text())
+    stored = read_config(out)
     stored_settings = {k: stored.get(k) for k in settings}
     if stored_settings != json.loads(json.dumps(settings)):
         diffs = [k for k in settings if json.dumps(stored_settings[k], sort_keys=True)
@@ -159,10 +213,15 @@ def _check_out_dir(out: Path, settings: dict[str, Any]) -> bool:
     return True
 
 
-def _write_json_atomic(path: Path, data: Any) -> None:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(data, indent=1))
-    os.replace(partial, path)
+def _check_same_dataset(out: Path, provenance: dict[str, Any]) -> None:
+    stored = read_config(out).get("dataset_provenance")
+    stored_sha = stored.get("sha256") if isinstance(stored, dict) else None
+    if not isinstance(stored_sha, str):
+        raise OffdynError(f"{str(out / CONFIG_FILE)!r} is damaged (no dataset sha256 in dataset_provenance); "
+                          "use a new --out folder")
+    if stored_sha != provenance["sha256"]:
+        raise OffdynError(f"{out} was trained on another dataset (sha256 {stored_sha[:12]}..., now "
+                          f"{provenance['sha256'][:12]}...); use a new --out folder")
 
 
 def _episode_seed(seed: int, stream: int, episode: int) -> int:
@@ -266,33 +325,57 @@ class _Loop:
                    "target_episodes": self.target_envs.episodes if self.target_envs else None}
         save_checkpoint(self.out, step, self.method.state_dict(), trainer)
 
-    def restore(self) -> int:
-        path = latest_checkpoint(self.out)
-        if path is None:
-            _truncate_metrics(self.out, 0)
-            return 0
+    def restore(self) -> tuple[int, list[str]]:
+        """Load the newest checkpoint that verifies; returns its step and notes on what was skipped
+        or dropped. Damaged checkpoints newer than it are removed (the resumed run writes them again)."""
+        damaged: list[DamagedCheckpointError] = []
+        step = 0
+        for path in reversed(checkpoints(self.out)):
+            try:
+                step = self._load(path)
+                break
+            except DamagedCheckpointError as error:
+                damaged.append(error)
+        else:
+            if damaged:
+                raise OffdynError(f"cannot resume {str(self.out)!r}: every checkpoint is damaged ("
+                                  + "; ".join(f"{e.path.name}: {e.reason}" for e in damaged)
+                                  + f"); nothing was changed. Remove {str(self.out / CHECKPOINT_DIR)!r} "
+                                  "to train again from the start, or use a new --out folder")
+        resumed_from = f"step_{step:09d}" if step else "the start"
+        notes = [f"{error}; resuming from {resumed_from}" for error in damaged]
+        for error in damaged:
+            shutil.rmtree(error.path, ignore_errors=True)
+        kept, metric_notes = read_metrics(self.out, step)
+        if (self.out / METRICS_FILE).exists():
+            write_lines_atomic(self.out / METRICS_FILE, kept)
+        return step, notes + metric_notes
+
+    def _load(self, path: Path) -> int:
+        """Restore the method and episode counters from checkpoint ``path``; raises
+        :class:`DamagedCheckpointError` (leaving the method unchanged) when it cannot be used."""
         tensors, trainer = load_checkpoint(path)
-        self.method.load_state_dict(tensors)
+        missing = sorted(set(self.method.state_dict()) - set(tensors))
+        if missing:
+            raise DamagedCheckpointError(path, f"{STATE_FILE} lacks {len(missing)} tensor(s) of this run, "
+                                               f"e.g. {missing[0]!r}")
+        episodes = {}
+        for envs, key in ((self.train_envs, "train_episodes"), (self.target_envs, "target_episodes")):
+            value = trainer.get(key)
+            if envs is not None and not (isinstance(value, list) and len(value) == len(self.seeds)
+                                         and all(isinstance(x, int) for x in value)):
+                raise DamagedCheckpointError(path, f"{TRAINER_FILE} has no {key} counter per seed")
+            episodes[key] = value
+        try:
+            self.method.load_state_dict(tensors)
+        except (RuntimeError, KeyError, ValueError) as error:
+            # A later checkpoint loaded in full overwrites whatever this one had set.
+            raise DamagedCheckpointError(path, f"its tensors do not fit this run: {error}") from None
         for envs, key in ((self.train_envs, "train_episodes"), (self.target_envs, "target_episodes")):
             if envs is not None:
-                envs.episodes = list(trainer[key])
+                envs.episodes = list(episodes[key])
                 envs.reset_all()
-        _truncate_metrics(self.out, trainer["step"])
-        return int(trainer["step"])
-
-
-def _truncate_metrics(out: Path, step: int) -> None:
-    """Drop learning-curve lines written after the checkpoint a run resumes from."""
-    path = out / METRICS_FILE
-    if path.exists():
-        lines = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
-        _write_json_lines_atomic(path, lines)
-
-
-def _write_json_lines_atomic(path: Path, lines: list[str]) -> None:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text("".join(line + "\n" for line in lines))
-    os.replace(partial, path)
+        return checkpoint_step(path)
 
 
 def load_trained_policy(run_dir: str | Path) -> Callable[[np.ndarray], np.ndarray]:
@@ -303,9 +386,10 @@ def load_trained_policy(run_dir: str | Path) -> Callable[[np.ndarray], np.ndarra
         raise OffdynError(f"{str(run_dir)!r} is not a training run folder (no {CONFIG_FILE})")
     path = latest_checkpoint(run_dir)
     if path is None:
+        if checkpoints(run_dir):
+            load_checkpoint(checkpoints(run_dir)[-1])  # raises, saying what is damaged
         raise OffdynError(f"{str(run_dir)!r} has no checkpoint yet")
-    settings = json.loads((run_dir / CONFIG_FILE).read_text())
-    pair = get_task(settings["task"])
+    pair = get_task(str(read_config(run_dir).get("task")))
     tensors, _ = load_checkpoint(path)
     actor = [tensors[f"actor.{i}"][:1] for i in range(sum(1 for k in tensors if k.startswith("actor.")))]
     space = pair.make("target").action_space

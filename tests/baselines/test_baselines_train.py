@@ -41,7 +41,11 @@ def test_every_method_runs_on_a_hopper_pair(tmp_path, algo, hopper_dataset):
     out = tmp_path / "run"
     result = train(algo, "hopper-gravity-0.5", steps=80, out=out, dataset=_needs(algo, hopper_dataset),
                    overrides=_tiny(algo), eval_every=40, eval_episodes=1, progress=False)
-    assert {p.name for p in out.iterdir()} == {"config.json", "metrics.jsonl", "result.json", "checkpoints"}
+    assert {p.name for p in out.iterdir()} == {"config.json", "metrics.jsonl", "result.json", "checkpoints", ".lock"}
+    assert [p.name for p in (out / "checkpoints").iterdir()] and all(
+        {f.name for f in p.iterdir()} == {"state.safetensors", "trainer.json", "checksums.json"}
+        for p in (out / "checkpoints").iterdir())
+    assert result["warnings"] == []
     curve = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [c["step"] for c in curve] == [40, 80]
     assert all(np.isfinite(list(c["train"].values())).all() for c in curve)

@@ -1,0 +1,129 @@
+"""A training run's folder on disk: the checks made before anything is written, the lock that
+keeps two processes out of one folder, and reading back what an interrupted run left.
+
+The files (``config.json``, ``metrics.jsonl``, ``result.json``, ``checkpoints/``) are described in
+:mod:`baselines.train`. ``.lock`` is the lock file: it stays after a run, holds nothing, and is
+only ever locked, never deleted (deleting a lock file lets two processes lock two different files).
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from offdyn_bench.errors import OffdynError
+
+CONFIG_FILE, METRICS_FILE, RESULT_FILE = "config.json", "metrics.jsonl", "result.json"
+LOCK_FILE = ".lock"
+
+
+def check_writable(out: Path) -> None:
+    """Raise unless ``out`` is, or can be created as, a folder this process can write in."""
+    if out.exists():
+        if not out.is_dir():
+            raise OffdynError(f"--out {str(out)!r} exists and is not a folder; expected a folder (new or a run's)")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise OffdynError(f"--out {str(out)!r} is not writable by this user; choose a folder you can write in")
+        return
+    # The nearest existing ancestor decides: a file there, or no write permission, fails later.
+    ancestor = out.absolute().parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise OffdynError(f"--out {str(out)!r} lies under {str(ancestor)!r}, which is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise OffdynError(f"--out {str(out)!r} cannot be created: {str(ancestor)!r} is not writable by this user")
+
+
+def read_config(out: Path) -> dict[str, Any]:
+    """``config.json`` of an existing run, or a clear error when it is damaged."""
+    path = out / CONFIG_FILE
+    try:
+        stored = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise OffdynError(f"{str(path)!r} is damaged (not valid JSON: {error}), so it cannot tell which run "
+                          f"{str(out)!r} holds; use a new --out folder") from None
+    except OSError as error:
+        raise OffdynError(f"cannot read {str(path)!r}: {error.strerror}") from None
+    if not isinstance(stored, dict) or not isinstance(stored.get("config"), dict):
+        raise OffdynError(f"{str(path)!r} is damaged (expected a JSON object with the run's settings); "
+                          "use a new --out folder")
+    return stored
+
+
+def holds_files(out: Path) -> bool:
+    """True when ``out`` holds anything but the lock file."""
+    return any(p.name != LOCK_FILE for p in out.iterdir())
+
+
+@contextmanager
+def run_folder_lock(out: Path) -> Iterator[None]:
+    """Hold an exclusive lock on run folder ``out`` (created if missing) for the block; a second
+    holder, in this process or another, gets a clear error at once instead of waiting."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd = os.open(out / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as error:
+        raise OffdynError(f"cannot create run folder {str(out)!r}: {error.strerror}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise OffdynError(f"--out {str(out)!r} is in use by another training process (its {LOCK_FILE} is "
+                                  "locked); wait for it to finish or use another folder") from None
+            raise OffdynError(f"cannot lock run folder {str(out)!r}: {error.strerror}") from None
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
+
+
+def read_metrics(out: Path, resume_step: int) -> tuple[list[str], list[str]]:
+    """The learning-curve lines an interrupted run keeps when it resumes from ``resume_step``, and
+    notes on what was dropped. A line cut by a kill (the last one, unparseable) is dropped; so are
+    lines after ``resume_step``, which the resumed run writes again."""
+    path = out / METRICS_FILE
+    if not path.exists():
+        return [], []
+    text = path.read_text(errors="replace")
+    lines = text.split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()
+    kept, notes, later = [], [], 0
+    for number, line in enumerate(lines, start=1):
+        try:
+            entry = json.loads(line)
+            step = int(entry["step"])
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            if number == len(lines):
+                notes.append(f"{METRICS_FILE}: dropped a partial last line (line {number}, cut off by the "
+                             "interruption)")
+                continue
+            raise OffdynError(f"{str(path)!r} line {number} is damaged ({line[:60]!r}); expected one JSON "
+                              "object per line; repair or remove that line to resume") from None
+        if step <= resume_step:
+            kept.append(line)
+        else:
+            later += 1
+    if later:
+        notes.append(f"{METRICS_FILE}: dropped {later} line(s) after step {resume_step}, written after the "
+                     "checkpoint the run resumes from")
+    return kept, notes
+
+
+def write_lines_atomic(path: Path, lines: list[str]) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text("".join(line + "\n" for line in lines))
+    os.replace(partial, path)
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(json.dumps(data, indent=1))
+    os.replace(partial, path)
