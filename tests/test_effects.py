@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import pathlib
 
+import hypothesis
+import hypothesis.strategies as st
 import mujoco
 import numpy as np
 import pytest
@@ -26,6 +30,7 @@ from offdyn_bench.effects import (
     compile_model,
     effects_from_dicts,
 )
+from offdyn_bench.effects.base import OneOf
 from offdyn_bench.envs import ENV_CLASSES
 from offdyn_bench.errors import InvalidParameterError, OffdynError, UnknownNameError
 
@@ -91,10 +96,19 @@ def test_effects_are_frozen():
 @pytest.mark.parametrize(
     ("data", "fragment"),
     [
-        ({"kind": "friction", "scale": -1.0}, "invalid scale=-1.0; expected a number in [0, inf]"),
-        ({"kind": "action_delay", "steps": -1}, "invalid steps=-1; expected an integer number of control steps >= 0"),
-        ({"kind": "action_delay", "steps": 1.5}, "invalid steps=1.5"),
-        ({"kind": "gravity", "scale": float("nan")}, "expected a finite number"),
+        ({"kind": "friction", "scale": -1.0}, "invalid scale=-1.0; expected a number in [0, 10]"),
+        ({"kind": "action_delay", "steps": -1}, "invalid steps=-1; expected an integer in [0, 1000]"),
+        ({"kind": "action_delay", "steps": 1.5}, "invalid steps=1.5; expected an integer in [0, 1000]"),
+        ({"kind": "gravity", "scale": float("nan")}, "invalid scale=nan; expected a number in [0, 10]"),
+        ({"kind": "gravity", "scale": "0.5"}, "invalid scale='0.5'; expected a number in [0, 10]"),
+        ({"kind": "gravity", "scale": True}, "invalid scale=True; expected a number in [0, 10]"),
+        # Absurd but finite values: each used to crash or allocate far downstream.
+        ({"kind": "obs_delay", "steps": 10**9}, "invalid steps=1000000000; expected an integer in [0, 1000]"),
+        ({"kind": "action_delay", "steps": 10**18}, "expected an integer in [0, 1000]"),
+        ({"kind": "noslip", "iterations": 10**12}, "invalid iterations=1000000000000; expected an integer in [0, 1000]"),
+        ({"kind": "gravity", "scale": 1e300}, "invalid scale=1e+300; expected a number in [0, 10]"),
+        ({"kind": "damping", "value": 1e5}, "expected a number in [0, 10000]"),
+        ({"kind": "friction_cone", "cone": ["elliptic"]}, "invalid cone=('elliptic',); expected one of"),
         ({"kind": "gravity", "scale": 1.0, "target": "torso"}, "expected None: this effect acts on the whole model"),
         ({"kind": "joint_range", "scale": 1.5, "target": "thigh_joint"}, "expected a number in (0, 1]"),
         ({"kind": "contact_solimp", "dmin": 0.95, "dmax": 0.9, "width": 0.001}, "dmin <= dmax"),
@@ -223,3 +237,108 @@ def test_joint_range_shrinks_about_the_reference_pose():
     j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "thigh_joint")
     np.testing.assert_allclose(np.degrees(base.jnt_range[j]), [-150.0, 0.0])
     np.testing.assert_allclose(np.degrees(model.jnt_range[j]), [-30.0, 0.0])
+
+
+# --- parameter ranges: every parameter has one, and nothing outside it is ever built --------
+
+def test_every_parameter_of_every_kind_has_a_documented_range():
+    for kind, cls in EFFECT_KINDS.items():
+        parameters = {f.name for f in dataclasses.fields(cls)} - {"target"}
+        assert set(cls.ranges) == parameters, kind
+        for name, allowed in cls.ranges.items():
+            assert f"``{name}`` in {allowed.document()}" in cls.__doc__, kind
+
+
+def test_the_readme_effects_table_states_every_range():
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    rows = {line.split("|")[1].strip().strip("`"): line for line in readme.splitlines()
+            if line.startswith("| `") and line.split("|")[1].strip().strip("`") in EFFECT_KINDS}
+    assert set(rows) == set(EFFECT_KINDS)
+    for kind, cls in EFFECT_KINDS.items():
+        for name, allowed in cls.ranges.items():
+            assert f"`{name}` {allowed.document()}" in rows[kind], (kind, name)
+
+
+def test_numpy_numbers_become_plain_numbers():
+    effect = Effect.from_dict({"kind": "obs_bias", "target": np.int64(2), "value": np.float32(0.25)})
+    assert type(effect.target) is int and type(effect.value) is float
+    assert json.loads(json.dumps(effect.to_dict())) == {"kind": "obs_bias", "target": 2, "value": 0.25}
+    assert ActionDelay(steps=np.int32(3)).steps == 3
+
+
+def test_the_longest_delay_builds_and_steps():
+    from offdyn_bench.envs import make_robot_env
+
+    env = make_robot_env("Hopper", [{"kind": "obs_delay", "steps": 1000}, {"kind": "action_delay", "steps": 1000}])
+    obs, _ = env.reset(seed=0)
+    first = obs.copy()
+    for _ in range(3):
+        obs, _, _, _, info = env.step(env.action_space.sample())
+    np.testing.assert_array_equal(obs, first)
+    np.testing.assert_array_equal(info["applied_action"], 0.0)
+
+
+_SCALARS = st.one_of(
+    st.none(), st.booleans(), st.integers(), st.integers(min_value=-10**30, max_value=10**30),
+    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12),
+    st.sampled_from(["elliptic", "pyramidal", "RK4", "implicitfast", "thigh", "foot_joint"]),
+)
+_VALUES = st.recursive(_SCALARS, lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=5), inner, max_size=3),
+                       max_leaves=6)
+_PARAMETER_NAMES = sorted({f.name for cls in EFFECT_KINDS.values() for f in dataclasses.fields(cls)})
+
+
+@st.composite
+def _effect_dicts(draw: st.DrawFn) -> dict:
+    kind = draw(st.one_of(st.sampled_from(sorted(EFFECT_KINDS)), _VALUES))
+    keys = draw(st.lists(st.one_of(st.sampled_from(_PARAMETER_NAMES), st.text(max_size=8)), max_size=6, unique=True))
+    data = {key: draw(_VALUES) for key in keys}
+    if draw(st.booleans()):
+        data["kind"] = kind
+    return data
+
+
+@hypothesis.settings(max_examples=400, deadline=None)
+@hypothesis.given(data=st.one_of(_effect_dicts(), _VALUES))
+def test_from_dict_builds_a_valid_effect_or_raises_the_suites_error(data):
+    try:
+        effect = Effect.from_dict(data)
+    except OffdynError as error:
+        message = str(error)
+        assert "\n" not in message and len(message) < 600
+        return
+    # Built: every parameter is a plain value inside its range, and the effect round-trips.
+    for name, allowed in effect.ranges.items():
+        assert allowed.normalize(getattr(effect, name)) == getattr(effect, name)
+    assert Effect.from_dict(json.loads(json.dumps(effect.to_dict()))) == effect
+
+
+def _in_range(allowed) -> st.SearchStrategy:
+    if isinstance(allowed, OneOf):
+        return st.sampled_from(allowed.options)
+    if allowed.integer:
+        return st.integers(min_value=int(allowed.low), max_value=min(int(allowed.high), 50))
+    return st.floats(min_value=allowed.low, max_value=allowed.high, exclude_min=allowed.low_open,
+                     exclude_max=allowed.high_open)
+
+
+@st.composite
+def _valid_hopper_effects(draw: st.DrawFn) -> dict:
+    kind = draw(st.sampled_from(sorted(EFFECT_KINDS)))
+    cls = EFFECT_KINDS[kind]
+    data = {"kind": kind, "target": EXAMPLES[kind].get("target")}
+    data.update({name: draw(_in_range(allowed)) for name, allowed in cls.ranges.items()})
+    if kind == "contact_solimp" and data["dmin"] > data["dmax"]:
+        data["dmin"], data["dmax"] = data["dmax"], data["dmin"]
+    return data
+
+
+@hypothesis.settings(max_examples=40, deadline=None, suppress_health_check=[hypothesis.HealthCheck.too_slow])
+@hypothesis.given(data=_valid_hopper_effects())
+def test_every_value_in_range_builds_a_hopper_that_steps(data):
+    from offdyn_bench.envs import make_robot_env
+
+    env = make_robot_env("Hopper", [data])
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(env.action_space.sample())

@@ -17,7 +17,7 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from offdyn_bench.effects.base import Effect
+from offdyn_bench.effects.base import Effect, Interval
 from offdyn_bench.effects.model import actuator_ids
 from offdyn_bench.errors import OffdynError
 
@@ -60,10 +60,8 @@ class ChannelEffect(Effect):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class _Noise(ChannelEffect):
     value_field: ClassVar[str] = "std"
+    ranges: ClassVar = {"std": Interval(0.0, 1e3)}  # in the units of the command or observation
     std: float
-
-    def validate(self) -> None:
-        self._require_finite("std", low=0.0)
 
     def transform(self, x, mask, rng):
         if rng is None:
@@ -75,10 +73,8 @@ class _Noise(ChannelEffect):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class _Bias(ChannelEffect):
     value_field: ClassVar[str] = "value"
+    ranges: ClassVar = {"value": Interval(-1e3, 1e3)}  # in the units of the command or observation
     value: float
-
-    def validate(self) -> None:
-        self._require_finite("value")
 
     def transform(self, x, mask, rng):
         return x + (self.value if mask is None else self.value * mask)
@@ -88,10 +84,9 @@ class _Bias(ChannelEffect):
 class _Delay(ChannelEffect):
     value_field: ClassVar[str] = "steps"
     delay_steps: ClassVar[bool] = True
+    # The run-time buffer holds `steps` past values: the bound keeps it small.
+    ranges: ClassVar = {"steps": Interval(0, 1000, integer=True, unit="control steps")}
     steps: int
-
-    def validate(self) -> None:
-        self._require_steps("steps")
 
     def transform(self, x, mask, rng):
         """Delay a time series ``x[t, dim]`` of one episode (first axis is time)."""
@@ -134,10 +129,8 @@ class ActionGain(ChannelEffect):
     channel: ClassVar = "action"
     target_type: ClassVar = "actuator"
     value_field: ClassVar[str] = "scale"
+    ranges: ClassVar = {"scale": Interval(-100.0, 100.0)}
     scale: float
-
-    def validate(self) -> None:
-        self._require_finite("scale")
 
     def transform(self, x, mask, rng):
         return x * self.scale if mask is None else np.where(mask, x * self.scale, x)
@@ -151,10 +144,8 @@ class ActionDeadzone(ChannelEffect):
     channel: ClassVar = "action"
     target_type: ClassVar = "actuator"
     value_field: ClassVar[str] = "threshold"
+    ranges: ClassVar = {"threshold": Interval(0.0, 1e3, unit="command units")}
     threshold: float
-
-    def validate(self) -> None:
-        self._require_finite("threshold", low=0.0)
 
     def transform(self, x, mask, rng):
         small = np.abs(x) <= self.threshold
@@ -169,10 +160,8 @@ class ActionSaturation(ChannelEffect):
     channel: ClassVar = "action"
     target_type: ClassVar = "actuator"
     value_field: ClassVar[str] = "limit"
+    ranges: ClassVar = {"limit": Interval(0.0, 1e3, low_open=True, unit="command units")}
     limit: float
-
-    def validate(self) -> None:
-        self._require_finite("limit", low=0.0, low_open=True)
 
     def transform(self, x, mask, rng):
         clipped = np.clip(x, -self.limit, self.limit)

@@ -17,7 +17,7 @@ from typing import ClassVar, Literal
 import mujoco
 import numpy as np
 
-from offdyn_bench.effects.base import Effect
+from offdyn_bench.effects.base import Effect, Interval, OneOf
 from offdyn_bench.errors import OffdynError, UnknownNameError
 
 
@@ -130,10 +130,8 @@ class Gravity(ModelEffect):
     target_type: ClassVar = "global"
     value_field: ClassVar[str] = "scale"
     fields: ClassVar = ("opt.gravity",)
+    ranges: ClassVar = {"scale": Interval(0.0, 10.0, unit="x nominal")}
     scale: float
-
-    def validate(self) -> None:
-        self._require_finite("scale", low=0.0)
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
         model.opt.gravity[:] = model.opt.gravity * self.scale
@@ -152,10 +150,8 @@ class Friction(ModelEffect):
     target_type: ClassVar = "geom_or_body"
     value_field: ClassVar[str] = "scale"
     fields: ClassVar = ("geom_friction", "pair_friction")
+    ranges: ClassVar = {"scale": Interval(0.0, 10.0, unit="x nominal")}
     scale: float
-
-    def validate(self) -> None:
-        self._require_finite("scale", low=0.0)
 
     def check_target(self, model: mujoco.MjModel) -> None:
         geom_ids(model, self.target)
@@ -175,10 +171,8 @@ class Mass(ModelEffect):
     target_type: ClassVar = "body"
     value_field: ClassVar[str] = "scale"
     fields: ClassVar = ("body_mass", "body_inertia")
+    ranges: ClassVar = {"scale": Interval(0.01, 100.0, unit="x nominal")}
     scale: float
-
-    def validate(self) -> None:
-        self._require_finite("scale", low=0.0, low_open=True)
 
     def check_target(self, model: mujoco.MjModel) -> None:
         body_ids(model, self.target)
@@ -198,9 +192,6 @@ class _JointScalar(ModelEffect):
     model_field: ClassVar[str]
     value: float
 
-    def validate(self) -> None:
-        self._require_finite("value", low=0.0)
-
     def check_target(self, model: mujoco.MjModel) -> None:
         joint_ids(model, self.target)
 
@@ -215,6 +206,7 @@ class Damping(_JointScalar):
     kind: ClassVar[str] = "damping"
     model_field: ClassVar[str] = "dof_damping"
     fields: ClassVar = ("dof_damping",)
+    ranges: ClassVar = {"value": Interval(0.0, 1e4, unit="N m s/rad (N s/m)")}
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -224,6 +216,7 @@ class FrictionLoss(_JointScalar):
     kind: ClassVar[str] = "frictionloss"
     model_field: ClassVar[str] = "dof_frictionloss"
     fields: ClassVar = ("dof_frictionloss",)
+    ranges: ClassVar = {"value": Interval(0.0, 1e4, unit="N m (N)")}
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -233,6 +226,7 @@ class Armature(_JointScalar):
     kind: ClassVar[str] = "armature"
     model_field: ClassVar[str] = "dof_armature"
     fields: ClassVar = ("dof_armature",)
+    ranges: ClassVar = {"value": Interval(0.0, 1e3, unit="kg m^2 (kg)")}
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -243,10 +237,8 @@ class Gear(ModelEffect):
     target_type: ClassVar = "actuator"
     value_field: ClassVar[str] = "scale"
     fields: ClassVar = ("actuator_gear",)
+    ranges: ClassVar = {"scale": Interval(0.0, 100.0, low_open=True, unit="x nominal")}
     scale: float
-
-    def validate(self) -> None:
-        self._require_finite("scale", low=0.0, low_open=True)
 
     def check_target(self, model: mujoco.MjModel) -> None:
         actuator_ids(model, self.target)
@@ -268,10 +260,8 @@ class JointRange(ModelEffect):
     target_type: ClassVar = "joint"
     value_field: ClassVar[str] = "scale"
     fields: ClassVar = ("jnt_range",)
+    ranges: ClassVar = {"scale": Interval(0.0, 1.0, low_open=True, unit="x nominal")}
     scale: float
-
-    def validate(self) -> None:
-        self._require_finite("scale", low=0.0, high=1.0, low_open=True)
 
     def _joints(self, model: mujoco.MjModel) -> np.ndarray:
         joints = joint_ids(model, self.target)
@@ -312,12 +302,14 @@ class LimbSize(ModelEffect):
     fields: ClassVar = ("body_pos", "body_ipos", "body_iquat", "body_mass", "body_inertia",
                         "geom_size", "geom_pos", "geom_quat", "geom_aabb", "geom_rbound",
                         "site_pos", "site_size", "cam_pos", "body_sameframe", "geom_sameframe")
+    # Mass follows volume (scale^3): x5 already makes a limb 125 times heavier,
+    # and inertia scale^5, so below x0.05 a limb's inertia falls under what MuJoCo accepts.
+    ranges: ClassVar = {"scale": Interval(0.05, 5.0, unit="x nominal")}
     scale: float
 
     def validate(self) -> None:
         if self.target is None:
             self._invalid("target", None, "the name of the body to scale")
-        self._require_finite("scale", low=0.0, low_open=True)
 
     def check_target(self, model: mujoco.MjModel) -> None:
         body_ids(model, self.target)
@@ -361,12 +353,10 @@ class ContactSolref(ModelEffect):
     target_type: ClassVar = "geom_or_body"
     value_field: ClassVar[str] = "timeconst"
     fields: ClassVar = ("geom_solref", "pair_solref")
+    ranges: ClassVar = {"timeconst": Interval(0.0, 1.0, low_open=True, unit="s"),
+                        "dampratio": Interval(0.0, 10.0, low_open=True)}
     timeconst: float
     dampratio: float = 1.0
-
-    def validate(self) -> None:
-        self._require_finite("timeconst", low=0.0, low_open=True)
-        self._require_finite("dampratio", low=0.0, low_open=True)
 
     def check_target(self, model: mujoco.MjModel) -> None:
         geom_ids(model, self.target)
@@ -385,6 +375,9 @@ class ContactSolimp(ModelEffect):
     target_type: ClassVar = "geom_or_body"
     value_field: ClassVar[str] = "dmax"
     fields: ClassVar = ("geom_solimp", "pair_solimp")
+    ranges: ClassVar = {"dmin": Interval(0.0, 1.0, high_open=True), "dmax": Interval(0.0, 1.0, high_open=True),
+                        "width": Interval(0.0, 1.0, low_open=True, unit="m"), "midpoint": Interval(0.0, 1.0),
+                        "power": Interval(1.0, 10.0)}
     dmin: float
     dmax: float
     width: float
@@ -392,13 +385,8 @@ class ContactSolimp(ModelEffect):
     power: float = 2.0
 
     def validate(self) -> None:
-        self._require_finite("dmin", low=0.0, high=1.0, high_open=True)
-        self._require_finite("dmax", low=0.0, high=1.0, high_open=True)
         if self.dmin > self.dmax:
             self._invalid("dmin", self.dmin, f"dmin <= dmax ({self.dmax})")
-        self._require_finite("width", low=0.0, low_open=True)
-        self._require_finite("midpoint", low=0.0, high=1.0)
-        self._require_finite("power", low=1.0)
 
     def check_target(self, model: mujoco.MjModel) -> None:
         geom_ids(model, self.target)
@@ -424,11 +412,8 @@ class FrictionCone(ModelEffect):
     target_type: ClassVar = "global"
     value_field: ClassVar[str] = "cone"
     fields: ClassVar = ("opt.cone",)
+    ranges: ClassVar = {"cone": OneOf(tuple(_CONES))}
     cone: str
-
-    def validate(self) -> None:
-        if self.cone not in _CONES:
-            self._invalid("cone", self.cone, f"one of {sorted(_CONES)}")
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
         model.opt.cone = _CONES[self.cone]
@@ -442,11 +427,8 @@ class Integrator(ModelEffect):
     target_type: ClassVar = "global"
     value_field: ClassVar[str] = "integrator"
     fields: ClassVar = ("opt.integrator",)
+    ranges: ClassVar = {"integrator": OneOf(tuple(_INTEGRATORS))}
     integrator: str
-
-    def validate(self) -> None:
-        if self.integrator not in _INTEGRATORS:
-            self._invalid("integrator", self.integrator, f"one of {sorted(_INTEGRATORS)}")
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
         model.opt.integrator = _INTEGRATORS[self.integrator]
@@ -460,10 +442,8 @@ class NoSlip(ModelEffect):
     target_type: ClassVar = "global"
     value_field: ClassVar[str] = "iterations"
     fields: ClassVar = ("opt.noslip_iterations",)
+    ranges: ClassVar = {"iterations": Interval(0, 1000, integer=True)}
     iterations: int
-
-    def validate(self) -> None:
-        self._require_steps("iterations")
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
         model.opt.noslip_iterations = self.iterations
@@ -520,7 +500,10 @@ def _compile(spec: mujoco.MjSpec) -> mujoco.MjModel:
     # HalfCheetah's MJCF uses the deprecated ``settotalmass``; the warning is Gymnasium's to fix.
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*settotalmass.*")
-        return spec.compile()
+        try:
+            return spec.compile()
+        except ValueError as error:  # MuJoCo's compiler refuses the model (e.g. a massless body)
+            raise OffdynError(f"MuJoCo cannot compile the model with these effects: {error}") from None
 
 
 def compile_model(xml_path: str, effects: Sequence[ModelEffect] = ()) -> mujoco.MjModel:
