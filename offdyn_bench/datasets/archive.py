@@ -87,42 +87,93 @@ def _safe_member_path(name: str) -> str:
     return normalized
 
 
+def _plan_members(tar: tarfile.TarFile, expected: Mapping[str, str] | None,
+                  sizes: Mapping[str, int] | None) -> list[tuple[tarfile.TarInfo, str]]:
+    """Every member's header checked, before any byte is written: plain files and folders
+    only, each file named in ``expected`` (once) and no larger than ``sizes`` declares. Reading
+    the headers skips each member's data, which the size checks bound before it is read."""
+    planned: list[tuple[tarfile.TarInfo, str]] = []
+    seen: set[str] = set()
+    wanted_dirs = {posixpath.dirname(rel) for rel in expected or {}}  # and their parents, by prefix below
+    for member in tar:
+        rel = _safe_member_path(member.name)
+        if member.isdir():
+            if expected is not None and not any(rel == d or d.startswith(rel + "/") for d in wanted_dirs if d):
+                raise ArchiveError(f"archive member {member.name!r} is a folder the manifest does not list; "
+                                   "refusing to extract")
+            planned.append((member, rel))
+            continue
+        if not member.isfile() or member.issparse():
+            kind = "link" if (member.issym() or member.islnk()) else "special file"
+            raise ArchiveError(f"archive member {member.name!r} is a {kind}; datasets hold plain files only")
+        if rel in seen:
+            raise ArchiveError(f"archive member {member.name!r} appears twice")
+        seen.add(rel)
+        if expected is not None and rel not in expected:
+            raise ArchiveError(f"archive member {member.name!r} is not a file the manifest lists; refusing to "
+                               "extract (nothing was written)")
+        if sizes is not None and member.size > sizes[rel]:
+            raise ArchiveError(f"archive member {member.name!r} holds {member.size} bytes, the manifest declares "
+                               f"{sizes[rel]}; refusing to extract (nothing was written)")
+        planned.append((member, rel))
+    missing = sorted(set(expected or {}) - seen)
+    if missing:
+        raise ArchiveError(f"archive lacks files the manifest lists: {', '.join(missing[:3])}")
+    return planned
+
+
 def extract_archive(archive_path: pathlib.Path, destination: pathlib.Path,
+                    expected: Mapping[str, str] | None = None, sizes: Mapping[str, int] | None = None,
                     on_bytes: Callable[[int], None] | None = None) -> dict[str, str]:
     """Extract the plain files of a tar.gz into ``destination`` (which must be empty or new);
-    returns the sha256 of every extracted file. Links, devices and paths that would escape
-    ``destination`` are refused; a truncated or corrupt archive is an :class:`ArchiveError`."""
-    destination.mkdir(parents=True, exist_ok=True)
+    returns the sha256 of every extracted file.
+
+    Links, devices and paths that would escape ``destination`` are refused, and a truncated or
+    corrupt archive is an :class:`ArchiveError`. With ``expected`` ({path: sha256}), a member it
+    does not name is refused before anything is written, and a file whose bytes do not match
+    stops the extraction at that file. With ``sizes`` ({path: bytes}), no member may be larger
+    than declared, so the bytes written are at most their sum (a gzip bomb stops at its header).
+    """
+    if sizes is not None and expected is not None and set(sizes) != set(expected):
+        raise ArchiveError("the manifest's file sizes and file hashes name different files")
     hashes: dict[str, str] = {}
     try:
         with tarfile.open(archive_path, mode="r:gz") as tar:
-            for member in tar:
-                rel = _safe_member_path(member.name)
+            planned = _plan_members(tar, expected, sizes)
+            destination.mkdir(parents=True, exist_ok=True)
+            for member, rel in planned:
                 if member.isdir():
                     (destination / rel).mkdir(parents=True, exist_ok=True)
                     continue
-                if not member.isfile():
-                    kind = "link" if (member.issym() or member.islnk()) else "special file"
-                    raise ArchiveError(f"archive member {member.name!r} is a {kind}; datasets hold plain files only")
-                if rel in hashes:
-                    raise ArchiveError(f"archive member {member.name!r} appears twice")
-                target = destination / rel
-                target.parent.mkdir(parents=True, exist_ok=True)
-                source = tar.extractfile(member)
-                assert source is not None
-                digest = hashlib.sha256()
-                with source, open(target, "xb") as out:
-                    for block in iter(lambda: source.read(_CHUNK), b""):
-                        digest.update(block)
-                        out.write(block)
-                        if on_bytes is not None:
-                            on_bytes(len(block))
-                hashes[rel] = digest.hexdigest()
+                hashes[rel] = _extract_member(tar, member, destination / rel, on_bytes)
+                if expected is not None and hashes[rel] != expected[rel]:
+                    raise ArchiveError(f"unpacked file {rel} does not match the manifest (sha256 {hashes[rel]}, "
+                                       f"expected {expected[rel]})")
     except ArchiveError:
         raise
     except (tarfile.TarError, EOFError, zlib.error, gzip.BadGzipFile, OSError) as error:
         raise ArchiveError(f"archive {archive_path.name} is truncated or corrupt: {error}") from error
     return dict(sorted(hashes.items()))
+
+
+def _extract_member(tar: tarfile.TarFile, member: tarfile.TarInfo, target: pathlib.Path,
+                    on_bytes: Callable[[int], None] | None) -> str:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    source = tar.extractfile(member)
+    if source is None:
+        raise ArchiveError(f"archive member {member.name!r} has no data")
+    digest = hashlib.sha256()
+    written = 0
+    with source, open(target, "xb") as out:
+        for block in iter(lambda: source.read(_CHUNK), b""):
+            written += len(block)
+            if written > member.size:  # the checked header size is the bound, whatever the stream holds
+                raise ArchiveError(f"archive member {member.name!r} holds more than its header's {member.size} bytes")
+            digest.update(block)
+            out.write(block)
+            if on_bytes is not None:
+                on_bytes(len(block))
+    return digest.hexdigest()
 
 
 def compare_files(expected: Mapping[str, str], actual: Mapping[str, str]) -> list[str]:

@@ -276,6 +276,7 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
         archive_path = (out_dir if out_dir is not None else work / "archive") / archive_name(recipe.dataset_id)
         archive_sha = write_archive(built, archive_path)
         entry = Entry(recipe=recipe, files=files,
+                      file_sizes={rel: (built / rel).stat().st_size for rel in files},
                       archive=ArchiveRecord(archive_name(recipe.dataset_id), archive_sha, archive_path.stat().st_size),
                       total_steps=sum(len(e.rewards) for e in episodes), total_episodes=len(episodes),
                       reference_scores=scores, built_with=versions())

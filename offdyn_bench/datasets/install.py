@@ -3,24 +3,23 @@
 Datasets install where Minari looks for them: ``$MINARI_DATASETS_PATH/<dataset id>`` (default
 ``~/.minari/datasets``). A build or download first assembles the dataset in a hidden staging
 directory under that same root (same file system), then moves it into place with one rename: a
-reader sees either no dataset or a complete one, and a failure leaves nothing behind.
+reader sees either no dataset or a complete one, and a failure leaves nothing behind (a killed
+process's staging is removed by the next run: ``staging.py``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import os
 import pathlib
-import shutil
-import tempfile
-from collections.abc import Iterator
 
 from offdyn_bench.datasets.archive import compare_files, tree_sha256
 from offdyn_bench.datasets.manifest import Entry
+from offdyn_bench.datasets.staging import STAGING_DIR, clean_stale_staging, replace_directory, staging
 from offdyn_bench.errors import OffdynError
 
-STAGING_DIR = ".offdyn-staging"  # hidden: Minari's listing skips names starting with "."
+__all__ = ["STAGING_DIR", "InstallError", "VerifyReport", "datasets_root", "resolve_root", "dataset_dir",
+           "is_installed", "install_tree", "verify_installed", "staging", "clean_stale_staging"]
 
 
 class InstallError(OffdynError):
@@ -31,8 +30,7 @@ def datasets_root() -> pathlib.Path:
     """Minari's dataset directory, as Minari itself resolves it (made absolute)."""
     root = os.environ.get("MINARI_DATASETS_PATH")
     path = pathlib.Path(root) if root else pathlib.Path.home() / ".minari" / "datasets"
-    path.mkdir(parents=True, exist_ok=True)
-    return path.resolve()
+    return path.resolve()  # not created here: only a build or download writes anything
 
 
 def resolve_root(root: pathlib.Path | str | None) -> pathlib.Path:
@@ -49,40 +47,19 @@ def is_installed(dataset_id: str, root: pathlib.Path | None = None) -> bool:
     return (dataset_dir(dataset_id, root) / "data" / "metadata.json").is_file()
 
 
-@contextlib.contextmanager
-def staging(root: pathlib.Path | None = None) -> Iterator[pathlib.Path]:
-    """A fresh directory under the datasets root, removed on exit whatever happens."""
-    base = resolve_root(root) / STAGING_DIR
-    base.mkdir(parents=True, exist_ok=True)
-    path = pathlib.Path(tempfile.mkdtemp(dir=base))
-    try:
-        yield path
-    finally:
-        shutil.rmtree(path, ignore_errors=True)
-        with contextlib.suppress(OSError):
-            base.rmdir()  # only when empty: another install may be staging beside us
-
-
 def install_tree(staged: pathlib.Path, dataset_id: str, *, root: pathlib.Path | None = None,
                  replace: bool = False) -> pathlib.Path:
-    """Move a complete dataset directory into place with a rename.
+    """Move a complete dataset directory (staged on the same file system) into place.
 
-    An existing dataset is an error unless ``replace``; then it is first renamed aside (inside
-    the staging area) and removed only after the new one is in place."""
+    An existing dataset is an error unless ``replace``; then the two are exchanged so that the
+    id always names a complete dataset, even if the process is killed (see ``staging.py``)."""
     root = resolve_root(root)
     final = dataset_dir(dataset_id, root)
     final.parent.mkdir(parents=True, exist_ok=True)
     if final.exists():
         if not replace:
             raise InstallError(f"{dataset_id} is already installed at {final}; pass --force to replace it")
-        aside = staged.parent / (staged.name + ".replaced")
-        os.rename(final, aside)
-        try:
-            os.rename(staged, final)
-        except OSError:
-            os.rename(aside, final)  # put the old one back rather than leave nothing
-            raise
-        shutil.rmtree(aside, ignore_errors=True)
+        replace_directory(staged, final, root)
     else:
         os.rename(staged, final)
     return final
@@ -103,6 +80,7 @@ def verify_installed(entry: Entry, root: pathlib.Path | None = None) -> VerifyRe
     """Compare an installed dataset with the sha256 of every file its manifest entry records,
     then load it with Minari and compare its step count."""
     path = dataset_dir(entry.dataset_id, root)
+    clean_stale_staging(resolve_root(root))  # may put back a copy a killed --force had moved aside
     if not is_installed(entry.dataset_id, root):
         raise InstallError(f"{entry.dataset_id} is not installed (looked in {path}); "
                            f"run: offdyn-bench datasets download {entry.dataset_id}")

@@ -14,10 +14,11 @@ import dataclasses
 import json
 import os
 import pathlib
+import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from offdyn_bench.datasets.recipes import ASSETS_DIR, Recipe, default_recipe, parse_dataset_id
+from offdyn_bench.datasets.recipes import ASSETS_DIR, Recipe, json_type, default_recipe, parse_dataset_id
 from offdyn_bench.errors import OffdynError, UnknownNameError
 
 MANIFEST_FORMAT = "offdyn-datasets-manifest/1"
@@ -46,6 +47,8 @@ class Entry:
     total_episodes: int | None = None
     reference_scores: Mapping[str, Any] | None = None
     built_with: Mapping[str, Any] | None = None
+    # Bytes of every file: extraction writes no more than this (absent in entries built before).
+    file_sizes: Mapping[str, int] | None = None
 
     @property
     def dataset_id(self) -> str:
@@ -64,28 +67,104 @@ class Entry:
             "total_episodes": self.total_episodes,
             "reference_scores": self.reference_scores,
             "built_with": self.built_with,
+            # Only when known, so entries recorded before sizes were kept read back unchanged.
+            **({} if self.file_sizes is None else {"file_sizes": dict(sorted(self.file_sizes.items()))}),
         }
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], where: str = "manifest") -> Entry:
+    def from_dict(cls, data: Any, where: str = "manifest") -> Entry:
+        """An entry from its JSON form. Any other JSON value (a list, a string, a field of the
+        wrong type, a path that could leave the dataset folder) is a :class:`ManifestError`
+        that says where, what was found and what was expected."""
+        if not isinstance(data, Mapping):
+            raise ManifestError(f"{where}: a dataset entry must be a JSON object with keys {_ENTRY_KEYS}, "
+                                f"got {json_type(data)}")
+        unknown = sorted(set(data) - set(_ENTRY_KEYS))
+        if unknown:
+            raise ManifestError(f"{where}: unknown keys {unknown} in a dataset entry; expected {_ENTRY_KEYS}")
+        if "recipe" not in data:
+            raise ManifestError(f"{where}: the dataset entry has no 'recipe'; expected keys {_ENTRY_KEYS}")
         try:
-            archive = data.get("archive")
-            return cls(
-                recipe=Recipe.from_dict(data["recipe"]),
-                files=data.get("files"),
-                archive=None if archive is None else ArchiveRecord(str(archive["name"]), str(archive["sha256"]),
-                                                                   int(archive["size"])),
-                total_steps=data.get("total_steps"),
-                total_episodes=data.get("total_episodes"),
-                reference_scores=data.get("reference_scores"),
-                built_with=data.get("built_with"),
-            )
-        except (KeyError, TypeError, ValueError) as error:
-            if isinstance(error, OffdynError):
-                raise
-            raise ManifestError(f"{where}: malformed dataset entry ({type(error).__name__}: {error}); expected "
-                                "keys recipe, files, archive, total_steps, total_episodes, reference_scores, "
-                                "built_with") from error
+            recipe = Recipe.from_dict(data["recipe"])
+        except OffdynError as error:
+            raise ManifestError(f"{where}: {error}") from error
+        files = _files(where, data.get("files"))
+        return cls(
+            recipe=recipe,
+            files=files,
+            archive=_archive(where, data.get("archive")),
+            total_steps=_count(where, "total_steps", data.get("total_steps")),
+            total_episodes=_count(where, "total_episodes", data.get("total_episodes")),
+            reference_scores=_object(where, "reference_scores", data.get("reference_scores")),
+            built_with=_object(where, "built_with", data.get("built_with")),
+            file_sizes=_file_sizes(where, data.get("file_sizes"), files),
+        )
+
+
+_ENTRY_KEYS = ["recipe", "files", "file_sizes", "archive", "total_steps", "total_episodes", "reference_scores",
+               "built_with"]
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+def _object(where: str, key: str, value: Any) -> Mapping[str, Any] | None:
+    if value is not None and not isinstance(value, Mapping):
+        raise ManifestError(f"{where}: {key!r} must be a JSON object or null, got {json_type(value)}")
+    return value
+
+
+def _count(where: str, key: str, value: Any) -> int | None:
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 0):
+        raise ManifestError(f"{where}: {key!r} must be a non-negative integer or null, got {value!r:.60}")
+    return value
+
+
+def _relative_file(where: str, path: Any) -> str:
+    """A dataset file's path: relative, posix, and unable to leave the dataset folder."""
+    if not isinstance(path, str) or not path or path.startswith("/") or "\\" in path \
+            or any(part in ("", ".", "..") for part in path.split("/")) or "\0" in path:
+        raise ManifestError(f"{where}: file name {path!r:.80} is not a relative path inside the dataset folder")
+    return path
+
+
+def _files(where: str, value: Any) -> dict[str, str] | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise ManifestError(f"{where}: 'files' must map file names to sha256 hex digests, got {json_type(value)}")
+    files = {}
+    for path, digest in value.items():
+        if not isinstance(digest, str) or not _SHA256.fullmatch(digest):
+            raise ManifestError(f"{where}: sha256 of {path!r:.80} must be 64 lowercase hex digits, got {digest!r:.80}")
+        files[_relative_file(where, path)] = digest
+    return files
+
+
+def _file_sizes(where: str, value: Any, files: Mapping[str, str] | None) -> dict[str, int] | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise ManifestError(f"{where}: 'file_sizes' must map file names to byte counts, got {json_type(value)}")
+    sizes = {_relative_file(where, path): _count(where, f"file_sizes[{path!r:.80}]", size)
+             for path, size in value.items()}
+    if files is None or set(sizes) != set(files):
+        raise ManifestError(f"{where}: 'file_sizes' must name exactly the files of 'files'")
+    return sizes  # type: ignore[return-value]
+
+
+def _archive(where: str, value: Any) -> ArchiveRecord | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping) or set(value) != {"name", "sha256", "size"}:
+        raise ManifestError(f"{where}: 'archive' must be a JSON object with keys name, sha256, size; "
+                            f"got {json_type(value) if not isinstance(value, Mapping) else sorted(value)}")
+    name, digest, size = value["name"], value["sha256"], value["size"]
+    if not isinstance(name, str) or not isinstance(digest, str) or not _SHA256.fullmatch(digest):
+        raise ManifestError(f"{where}: archive name must be a string and sha256 64 lowercase hex digits, "
+                            f"got {name!r:.80}, {digest!r:.80}")
+    size = _count(where, "archive size", size)
+    if size is None:
+        raise ManifestError(f"{where}: 'archive size' must be a non-negative integer, got null")
+    return ArchiveRecord(name, digest, size)
 
 
 def archive_name(dataset_id: str) -> str:
@@ -130,8 +209,11 @@ class Manifest:
         if not isinstance(data, Mapping) or data.get("format") != MANIFEST_FORMAT:
             found = data.get("format") if isinstance(data, Mapping) else type(data).__name__
             raise ManifestError(f"{where}: format {found!r}, expected {MANIFEST_FORMAT!r}")
+        datasets = data.get("datasets", {})
+        if not isinstance(datasets, Mapping):
+            raise ManifestError(f"{where}: 'datasets' must map dataset ids to entries, got {json_type(datasets)}")
         entries = {}
-        for ident, raw in data.get("datasets", {}).items():
+        for ident, raw in datasets.items():
             entry = Entry.from_dict(raw, where=f"{where}, dataset {ident!r}")
             if entry.dataset_id != ident:
                 raise ManifestError(f"{where}: entry {ident!r} holds the recipe of {entry.dataset_id!r}")

@@ -177,14 +177,64 @@ class Recipe:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Recipe:
+        """A recipe from its JSON form; anything else (a list, a missing or mistyped field) is a
+        :class:`RecipeError` that names the field and the type it should have."""
+        if not isinstance(data, Mapping):
+            raise RecipeError(f"a recipe must be a JSON object, got {json_type(data)}")
         fields = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - fields
         if unknown:
             raise RecipeError(f"recipe {data.get('dataset_id')!r}: unknown fields {sorted(unknown)}; "
                               f"expected {sorted(fields)}")
-        values = dict(data)
-        values["behaviour"] = Behaviour(**values["behaviour"])
-        return cls(**values)
+        where = f"recipe {data.get('dataset_id')!r}" if isinstance(data.get("dataset_id"), str) else "recipe"
+        _check_fields(where, data, _RECIPE_FIELDS)
+        behaviour = data["behaviour"]
+        if not isinstance(behaviour, Mapping):
+            raise RecipeError(f"{where}: field 'behaviour' must be a JSON object, got {json_type(behaviour)}")
+        known = {f.name for f in dataclasses.fields(Behaviour)}
+        if set(behaviour) - known:
+            raise RecipeError(f"{where}: unknown behaviour fields {sorted(set(behaviour) - known)}; "
+                              f"expected {sorted(known)}")
+        _check_fields(f"{where}, behaviour", behaviour, _BEHAVIOUR_FIELDS)
+        return cls(**{**data, "behaviour": Behaviour(**behaviour)})
+
+
+# JSON field -> (accepted types, required); bool is refused where an int is meant.
+_STR, _INT, _NUM, _OPT_STR = (str,), (int,), (int, float), (str, type(None))
+_RECIPE_FIELDS: Mapping[str, tuple[tuple[type, ...], bool]] = {
+    "dataset_id": (_STR, True), "task": (_STR, True), "task_version": (_INT, True), "task_sha256": (_STR, True),
+    "quality": (_STR, True), "behaviour": ((Mapping,), True), "num_transitions": (_INT, True),
+    "seed": (_INT, False), "collect_in": (_STR, False), "reference_episodes": (_INT, False),
+    "reference_seed": (_INT, False), "oracle_policy": (_OPT_STR, False), "oracle_policy_sha256": (_OPT_STR, False),
+    "data_format": (_STR, False),
+}
+_BEHAVIOUR_FIELDS: Mapping[str, tuple[tuple[type, ...], bool]] = {
+    "kind": (_STR, True), "policy": (_OPT_STR, False), "policy_sha256": (_OPT_STR, False),
+    "action_noise_std": (_NUM, False),
+}
+_TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", type(None): "null", Mapping: "a JSON object"}
+
+
+def json_type(value: object) -> str:
+    """How a JSON value reads in an error message (``a list``, ``null``, ``a string``)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    return {dict: "a JSON object", list: "a list", str: "a string", int: "an integer", float: "a number"}.get(
+        type(value), type(value).__name__)
+
+
+def _check_fields(where: str, data: Mapping[str, Any], spec: Mapping[str, tuple[tuple[type, ...], bool]]) -> None:
+    for name, (types, required) in spec.items():
+        if name not in data:
+            if required:
+                raise RecipeError(f"{where}: missing field {name!r}")
+            continue
+        value = data[name]
+        if isinstance(value, bool) or not isinstance(value, types):
+            expected = " or ".join(dict.fromkeys(_TYPE_NAMES[t] for t in types))
+            raise RecipeError(f"{where}: field {name!r} must be {expected}, got {json_type(value)}")
 
 
 def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,

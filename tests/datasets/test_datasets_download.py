@@ -154,7 +154,7 @@ def test_files_not_matching_the_entry_are_refused(published, loopback_remote, is
     files = dict(entry.files)
     files["data/metadata.json"] = "0" * 64
     rewrite_entry(loopback_remote.folder, dataset_id, files=files)
-    with pytest.raises(DownloadError, match="do not match the manifest"):
+    with pytest.raises(DownloadError, match="does not match the manifest"):
         download_dataset(dataset_id, remote=loopback_remote.url, manifest=EMPTY)
     assert_nothing_installed(isolated_paths, dataset_id)
 
