@@ -66,8 +66,14 @@ class _Noise(ChannelEffect):
     def transform(self, x, mask, rng):
         if rng is None:
             raise OffdynError(f"effect {self.kind!r} is stochastic and needs a random generator")
-        noise = rng.normal(0.0, self.std, size=np.shape(x))
-        return x + (noise if mask is None else noise * mask)
+        return x + self.noise_term(rng.standard_normal(np.shape(x)), mask)
+
+    def noise_term(self, z: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        """What the effect adds given standard normal draws ``z``: ``std * z`` on the masked
+        dimensions. ``+ 0.0`` makes the values exactly ``rng.normal(0.0, std)``'s (signed zeros
+        included), which recorded datasets were built with."""
+        noise = z * self.std + 0.0
+        return noise if mask is None else noise * mask
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -213,11 +219,14 @@ class ObsDelay(_Delay):
 # --- run time -------------------------------------------------------------------------------
 
 class _Stage:
-    """One effect at run time: its mask and, for a delay, a FIFO of ``steps`` past values."""
+    """One effect at run time: its mask; for noise, the noise term of each step of the current
+    block (row by row, filled by :class:`_NoiseBlocks`); for a delay, a FIFO of past values."""
 
     def __init__(self, effect: ChannelEffect, mask: np.ndarray) -> None:
         self.effect = effect
         self.mask: np.ndarray | None = None if mask.all() else mask
+        self.noise_size = mask.size if isinstance(effect, _Noise) else 0
+        self.noise = np.zeros((0, mask.size))
         self.memoryless = not effect.delay_steps
         self.transform = effect.transform  # bound once: called every step
         self.buffer = np.zeros((effect.steps if effect.delay_steps else 0, mask.size))  # type: ignore[attr-defined]
@@ -226,15 +235,62 @@ class _Stage:
         if len(self.buffer):
             self.buffer[:] = self.effect.initial_fill(first)  # type: ignore[attr-defined]
 
-    def __call__(self, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def __call__(self, x: np.ndarray, row: int) -> np.ndarray:
+        if self.noise_size:
+            return x + self.noise[row]
         if self.memoryless:
-            return self.transform(x, self.mask, rng)
+            return self.transform(x, self.mask, None)
         if not len(self.buffer):
             return x
         out = self.buffer[0].copy() if self.mask is None else np.where(self.mask, self.buffer[0], x)
         self.buffer[:-1] = self.buffer[1:]
         self.buffer[-1] = x
         return out
+
+
+class _NoiseBlocks:
+    """The Gaussian noise of every noise stage, drawn for many steps at once.
+
+    Per step, noise stages consume standard normals from one generator in a fixed order (action
+    stages, then observation stages, each in list order; a reset draws only its observation
+    stages' noise). ``standard_normal((k, n))`` holds exactly the numbers of ``k`` successive
+    ``standard_normal(n)`` calls, so a block of ``k`` steps gives each stage the noise it would
+    draw step by step: recorded datasets stay byte for byte the same. Blocks start small and double
+    up to ``MAX_ROWS`` steps, so a short episode (a new generator each) does not pay for a long one.
+    """
+
+    FIRST_ROWS = 16
+    MAX_ROWS = 1024
+
+    def __init__(self, action_stages: Sequence[_Stage], obs_stages: Sequence[_Stage]) -> None:
+        self.step_stages = [stage for stage in (*action_stages, *obs_stages) if stage.noise_size]
+        self.reset_stages = [stage for stage in obs_stages if stage.noise_size]
+        self.rng = np.random.default_rng(0)
+        self.next_rows = self.FIRST_ROWS
+
+    def restart(self, rng: np.random.Generator) -> None:
+        """Take a new generator (the episode's); the next block is a small one again."""
+        self.rng = rng
+        self.next_rows = self.FIRST_ROWS
+
+    def draw_reset(self) -> None:
+        """One row of noise for the observation stages, as a reset draws it."""
+        self._draw(self.reset_stages, 1)
+
+    def draw_block(self) -> int:
+        """Noise for the next steps of every stage; returns how many steps (rows) it covers."""
+        rows = self.next_rows
+        self._draw(self.step_stages, rows)
+        self.next_rows = min(2 * rows, self.MAX_ROWS)
+        return rows
+
+    def _draw(self, stages: Sequence[_Stage], rows: int) -> None:
+        z = self.rng.standard_normal((rows, sum(stage.noise_size for stage in stages)))
+        start = 0
+        for stage in stages:
+            end = start + stage.noise_size
+            stage.noise = stage.effect.noise_term(z[:, start:end], stage.mask)  # type: ignore[attr-defined]
+            start = end
 
 
 class ChannelEffects(gymnasium.Wrapper):
@@ -257,7 +313,9 @@ class ChannelEffects(gymnasium.Wrapper):
                             for e in self.effects if e.channel == "observation"]
         self._stages = self._action_stages + self._obs_stages
         self._buffered = [stage for stage in self._stages if stage.buffer.size]
-        self._rng = np.random.default_rng(0)
+        self._noise = _NoiseBlocks(self._action_stages, self._obs_stages)
+        self._row = 0  # this step's row of the noise block
+        self._block_rows = 0 if self._noise.step_stages else -1  # rows in the block; -1: no noise
 
     @property
     def channel_state_size(self) -> int:
@@ -268,33 +326,42 @@ class ChannelEffects(gymnasium.Wrapper):
             return np.zeros(0)
         return np.concatenate([stage.buffer.ravel() for stage in self._buffered])
 
-    def _observe(self, obs: np.ndarray) -> np.ndarray:
+    def _observe(self, obs: np.ndarray, row: int) -> np.ndarray:
         for stage in self._obs_stages:
-            obs = stage(obs, self._rng)
+            obs = stage(obs, row)
         return obs.astype(self.observation_space.dtype, copy=False)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
         # A fresh generator per episode, drawn from the env's RNG: the same seed, the same noise.
-        self._rng = np.random.default_rng(int(self.env.unwrapped.np_random.integers(2**63)))
+        self._noise.restart(np.random.default_rng(int(self.env.unwrapped.np_random.integers(2**63))))
+        self._row = 0
+        if self._noise.step_stages:
+            self._block_rows = 0  # the first step draws a block from the new generator
+        if self._noise.reset_stages:
+            self._noise.draw_reset()
         zero_action = np.zeros(self.action_space.shape)
         for stage in self._action_stages:
             stage.reset(zero_action)
         for stage in self._obs_stages:
             stage.reset(np.asarray(obs, dtype=float))
-        obs = self._observe(np.asarray(obs, dtype=float))
+        obs = self._observe(np.asarray(obs, dtype=float), 0)
         if "state" in info:
             info["state"] = np.concatenate([info["state"], self.channel_state()])
         return obs, info
 
     def step(self, action):
         prev_channel = self.channel_state() if self._buffered else None
+        row = self._row
+        if row == self._block_rows:  # noise block used up: draw the next one
+            row, self._block_rows = 0, self._noise.draw_block()
+        self._row = row + 1
         command = np.asarray(action, dtype=float)
         for stage in self._action_stages:
-            command = stage(command, self._rng)
+            command = stage(command, row)
         obs, reward, terminated, truncated, info = self.env.step(command)
         if self._obs_stages:
-            obs = self._observe(np.asarray(obs, dtype=float))
+            obs = self._observe(np.asarray(obs, dtype=float), row)
         info["applied_action"] = command
         if prev_channel is not None and "state" in info:
             info["prev_state"] = np.concatenate([info["prev_state"], prev_channel])
