@@ -1,0 +1,160 @@
+"""``offdyn-bench leaderboard submit``: one submission from the ``evaluation.json`` files of a runs folder.
+
+``offdyn-bench evaluate`` writes an ``evaluation.json`` into every run folder it scores; ``train``
+writes the learning curve next to it (``metrics.jsonl``). This module gathers one evaluation per
+core-suite task, checks that they were measured alike (protocol, track, budget, versions, method)
+and returns the submission document, validated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from leaderboard.submission import (
+    SUBMISSION_FORMAT,
+    SUBMISSION_FORMAT_VERSION,
+    Submission,
+    SubmissionError,
+    parse_json_strict,
+    validate_submission,
+)
+
+EVALUATION_FILE = "evaluation.json"
+METRICS_FILE = "metrics.jsonl"
+EVALUATION_FORMAT = "offdyn-bench/evaluation"
+EVALUATION_FORMAT_VERSION = 1
+_REQUIRED_EVALUATION_KEYS = ("protocol_version", "task", "task_version", "target_env_id", "track", "budget",
+                             "method", "episode_seeds", "seeds", "versions")
+_SHARED_FIELDS = ("protocol_version", "track", "budget", "method", "versions")
+"""Fields every evaluation of one submission must agree on."""
+
+
+def _read_evaluation(path: Path) -> dict[str, Any]:
+    try:
+        document = parse_json_strict(path.read_bytes(), source=str(path))
+    except OSError as error:
+        raise SubmissionError(f"cannot read {path}: {error.strerror}") from None
+    if not isinstance(document, dict) or document.get("format") != EVALUATION_FORMAT:
+        raise SubmissionError(f"{path}: not an offdyn-bench evaluation (expected \"format\": "
+                              f"\"{EVALUATION_FORMAT}\", as `offdyn-bench evaluate` writes)")
+    if document.get("format_version") != EVALUATION_FORMAT_VERSION:
+        raise SubmissionError(f"{path}: evaluation format_version {document.get('format_version')!r}; this "
+                              f"suite reads version {EVALUATION_FORMAT_VERSION}")
+    missing = [key for key in _REQUIRED_EVALUATION_KEYS if key not in document]
+    if missing:
+        raise SubmissionError(f"{path}: evaluation lacks {', '.join(missing)}; re-run `offdyn-bench evaluate`")
+    return document
+
+
+def _read_learning_curve(path: Path, seed_count: int) -> list[dict[str, Any]]:
+    """The ``step``/``target_return`` pairs of a ``metrics.jsonl`` (baselines/train.py writes them)."""
+    curve = []
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as error:
+        raise SubmissionError(f"cannot read {path}: {error}") from None
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        record = parse_json_strict(line, source=f"{path}:{number}")
+        if not isinstance(record, dict) or "step" not in record or "target_return" not in record:
+            raise SubmissionError(f"{path}:{number}: expected an object with \"step\" and \"target_return\" "
+                                  "(the metrics.jsonl of `offdyn-bench train`)")
+        returns = record["target_return"]
+        if not isinstance(returns, list) or len(returns) != seed_count:
+            raise SubmissionError(f"{path}:{number}: target_return has "
+                                  f"{len(returns) if isinstance(returns, list) else 'no'} per-seed values; the "
+                                  f"evaluation next to it has {seed_count} seeds (pass --no-learning-curves to "
+                                  "submit without curves)")
+        curve.append({"step": record["step"], "target_return": returns})
+    return curve
+
+
+def _describe_difference(field: str, values: Mapping[Path, Any]) -> str:
+    by_value: dict[str, list[Path]] = {}
+    for path, value in values.items():
+        by_value.setdefault(repr(value), []).append(path)
+    parts = [f"{value} in {paths[0]}" + (f" and {len(paths) - 1} more" if len(paths) > 1 else "")
+             for value, paths in sorted(by_value.items())]
+    return f"the evaluations disagree on {field}: " + "; ".join(parts) + \
+        "; a submission gathers evaluations made alike (one suite install, one track, one budget, one method)"
+
+
+def assemble_submission(runs_dir: Path, *, method: str, description: str = "", code_url: str | None = None,
+                        commit: str | None = None, track: str | None = None, budget: str | None = None,
+                        learning_curves: bool = True) -> Submission:
+    """The validated submission of the ``evaluation.json`` files under ``runs_dir`` (one per task)."""
+    from offdyn_bench import protocol
+
+    if not runs_dir.is_dir():
+        raise SubmissionError(f"runs folder {runs_dir} does not exist; expected a folder of evaluated runs")
+    paths = sorted(runs_dir.rglob(EVALUATION_FILE))
+    if not paths:
+        raise SubmissionError(f"no {EVALUATION_FILE} under {runs_dir}; run `offdyn-bench evaluate` on each "
+                              "run folder first")
+    evaluations = {path: _read_evaluation(path) for path in paths}
+
+    by_task: dict[str, Path] = {}
+    for path, evaluation in evaluations.items():
+        task = evaluation["task"]
+        if task in by_task:
+            raise SubmissionError(f"two evaluations of {task}: {by_task[task]} and {path}; keep one per task")
+        by_task[task] = path
+    for field in _SHARED_FIELDS:
+        values = {path: evaluation[field] for path, evaluation in evaluations.items()}
+        if len({repr(v) for v in values.values()}) > 1:
+            raise SubmissionError(_describe_difference(field, values))
+    first = next(iter(evaluations.values()))
+    for option, field in ((track, "track"), (budget, "budget")):
+        if option is not None and option != first[field]:
+            raise SubmissionError(f"--{field} {option} but the evaluations under {runs_dir} were made on "
+                                  f"{field} {first[field]!r}")
+
+    core = tuple(protocol.CORE_SUITE)
+    extra = sorted(set(by_task) - set(core))
+    if extra:
+        raise SubmissionError(f"{by_task[extra[0]]} evaluates {extra[0]}, which is not in the core suite; "
+                              f"a submission holds exactly the core suite ({', '.join(core)})")
+    missing = [task for task in core if task not in by_task]
+    if missing:
+        raise SubmissionError(f"no evaluation of {', '.join(missing)} under {runs_dir} "
+                              f"({len(by_task)} of {len(core)} core-suite tasks found); evaluate every core task")
+
+    tasks: dict[str, Any] = {}
+    for task in core:
+        path = by_task[task]
+        evaluation = evaluations[path]
+        entry: dict[str, Any] = {
+            "task_version": evaluation["task_version"],
+            "target_env_id": evaluation["target_env_id"],
+            "dataset": evaluation.get("dataset"),
+            "episode_seeds": evaluation["episode_seeds"],
+            "seeds": [{"seed": s.get("seed"), "returns": s.get("returns")} if isinstance(s, dict) else s
+                      for s in evaluation["seeds"]],
+        }
+        policy_sha256 = (evaluation.get("agent") or {}).get("policy_sha256")
+        if policy_sha256:
+            entry["policy_sha256"] = policy_sha256
+        metrics = path.parent / METRICS_FILE
+        if learning_curves and metrics.is_file():
+            entry["learning_curve"] = _read_learning_curve(metrics, len(evaluation["seeds"]))
+        tasks[task] = entry
+
+    method_entry: dict[str, Any] = {"name": method, "description": description}
+    if code_url is not None:
+        method_entry["code_url"] = code_url
+    if commit is not None:
+        method_entry["commit"] = commit
+    document = {
+        "format": SUBMISSION_FORMAT,
+        "format_version": SUBMISSION_FORMAT_VERSION,
+        "protocol_version": first["protocol_version"],
+        "method": method_entry,
+        "track": first["track"],
+        "budget": first["budget"],
+        "versions": first["versions"],
+        "tasks": tasks,
+    }
+    return validate_submission(document, source=f"submission assembled from {runs_dir}")

@@ -1,0 +1,150 @@
+"""``offdyn-bench leaderboard submit | validate | build | serve | token``.
+
+Only typer and the standard library are imported here: the CLI imports this module at start, so
+numpy, jsonschema, matplotlib, SQLAlchemy, Starlette and uvicorn load inside the commands.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+leaderboard_app = typer.Typer(no_args_is_help=True, add_completion=False,
+                              help="Leaderboard: assemble and validate submissions, render the board, serve it.")
+token_app = typer.Typer(no_args_is_help=True, add_completion=False,
+                        help="Submitter tokens of a served leaderboard (stored as sha256 hashes).")
+leaderboard_app.add_typer(token_app, name="token")
+
+_REPO_STORE = Path(__file__).resolve().parent / "submissions"
+DEFAULT_DB = "sqlite:///leaderboard.sqlite3"
+
+StoreOption = Annotated[Path, typer.Option(
+    "--store", help="Folder of <method>__<track>__<budget>.json submissions (default: the repository's store).")]
+DbOption = Annotated[str, typer.Option(
+    "--db", help="SQLAlchemy database URL, e.g. sqlite:///leaderboard.sqlite3 or "
+                 "postgresql+psycopg://user@host/dbname.")]
+ReferencesOption = Annotated[Optional[Path], typer.Option(
+    "--references", help="Reference-score file (default: the shipped assets/reference_scores.json).")]
+
+
+@contextlib.contextmanager
+def _errors_exit() -> Iterator[None]:
+    from offdyn_bench.errors import OffdynError
+
+    try:
+        yield
+    except OffdynError as error:
+        typer.echo(f"error: {error}", err=True)
+        raise typer.Exit(2) from None
+
+
+@leaderboard_app.command("submit")
+def submit_command(
+    runs_dir: Annotated[Path, typer.Argument(help="Folder holding one evaluated run folder (evaluation.json) "
+                                                  "per core-suite task.")],
+    method: Annotated[str, typer.Option(help="Method name: lower-case letters, digits and . _ + - (max 48).")],
+    out: Annotated[Path, typer.Option(help="Submission file to write.")],
+    description: Annotated[str, typer.Option(help="One paragraph on the method.")] = "",
+    code_url: Annotated[Optional[str], typer.Option(help="http(s) URL of the code that produced the runs.")] = None,
+    commit: Annotated[Optional[str], typer.Option(help="Commit of --code-url (hex).")] = None,
+    track: Annotated[Optional[str], typer.Option(help="Expected track; default: the evaluations' own.")] = None,
+    budget: Annotated[Optional[str], typer.Option(help="Expected budget; default: the evaluations' own.")] = None,
+    learning_curves: Annotated[bool, typer.Option(help="Include metrics.jsonl learning curves when present.")] = True,
+    force: Annotated[bool, typer.Option(help="Replace an existing --out file.")] = False,
+) -> None:
+    """Assemble a submission from the evaluation.json files under RUNS_DIR and validate it."""
+    with _errors_exit():
+        from leaderboard.assemble import assemble_submission
+        from leaderboard.store import write_file_atomic
+        from leaderboard.submission import SubmissionError, canonical_json
+
+        if out.exists() and not force:
+            raise SubmissionError(f"{out} exists; pass --force to replace it or choose another --out")
+        submission = assemble_submission(runs_dir, method=method, description=description, code_url=code_url,
+                                         commit=commit, track=track, budget=budget,
+                                         learning_curves=learning_curves)
+        write_file_atomic(out, canonical_json(submission.document))
+        seeds = len(next(iter(submission.tasks.values())).seeds)
+        typer.echo(f"wrote {out}: {submission.method} on {submission.track}/{submission.budget}, "
+                   f"{len(submission.tasks)} tasks x {seeds} seeds (valid under protocol {submission.protocol_version})")
+
+
+@leaderboard_app.command("validate")
+def validate_command(
+    files: Annotated[list[Path], typer.Argument(help="Submission files.")],
+) -> None:
+    """Validate submission files against the schema and the protocol (what the server accepts)."""
+    with _errors_exit():
+        from leaderboard.submission import read_submission_file
+
+        for path in files:
+            submission = read_submission_file(path)
+            typer.echo(f"{path}: valid ({submission.method} on {submission.track}/{submission.budget})")
+
+
+@leaderboard_app.command("build")
+def build_command(
+    out: Annotated[Path, typer.Option(help="Folder for leaderboard.md and index.html.")],
+    store: StoreOption = _REPO_STORE,
+    references: ReferencesOption = None,
+) -> None:
+    """Render the store into leaderboard.md (README table) and a static, self-contained index.html."""
+    with _errors_exit():
+        from leaderboard.render import build_site
+
+        markdown, page = build_site(store, out, references=references)
+        typer.echo(f"wrote {markdown} and {page}")
+
+
+@leaderboard_app.command("serve")
+def serve_command(
+    db: DbOption = DEFAULT_DB,
+    store: StoreOption = _REPO_STORE,
+    host: Annotated[str, typer.Option(help="Interface to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port.")] = 8000,
+    references: ReferencesOption = None,
+    max_body_bytes: Annotated[Optional[int], typer.Option(
+        help="Largest accepted request body (default: the submission size limit, 8 MiB).")] = None,
+) -> None:
+    """Serve the board at / and accept POST /submissions from token holders."""
+    with _errors_exit():
+        import uvicorn
+
+        from leaderboard.server import create_app
+        from leaderboard.submission import MAX_SUBMISSION_BYTES
+
+        app = create_app(db_url=db, store=store, references=references,
+                         max_body_bytes=max_body_bytes or MAX_SUBMISSION_BYTES)
+        uvicorn.run(app, host=host, port=port, log_level="info")
+
+
+@token_app.command("create")
+def token_create_command(
+    name: Annotated[str, typer.Argument(help="Who the token is for (unique), e.g. a lab or a person.")],
+    db: DbOption = DEFAULT_DB,
+) -> None:
+    """Create a submitter token; it is printed once and stored only as its sha256."""
+    with _errors_exit():
+        from leaderboard.database import Database
+
+        token = Database(db).create_token(name)
+        typer.echo(token)
+        typer.echo(f"token for {name!r} created; it is shown only now. Submit with "
+                   "`Authorization: Bearer <token>`.", err=True)
+
+
+@token_app.command("revoke")
+def token_revoke_command(
+    name: Annotated[str, typer.Argument(help="The name the token was created for.")],
+    db: DbOption = DEFAULT_DB,
+) -> None:
+    """Revoke a submitter token (its submissions stay)."""
+    with _errors_exit():
+        from leaderboard.database import Database
+
+        Database(db).revoke_token(name)
+        typer.echo(f"revoked the token of {name!r}")

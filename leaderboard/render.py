@@ -1,0 +1,361 @@
+"""``leaderboard.md`` and a self-contained ``index.html`` from a scored board.
+
+Deterministic: the same store gives the same bytes. Everything is sorted, no date is written, and
+the plots are PNGs from matplotlib's Agg backend with its metadata cleared (Agg rasterizes the same
+figure to the same pixels).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+from leaderboard.scores import Board, Entry, Interval, Normalization, performance_profile
+from leaderboard.store import write_file_atomic
+
+
+def _number(value: float, digits: int = 1) -> str:
+    return f"{value:.{digits}f}"
+
+
+def _interval_text(interval: Interval | None) -> str:
+    if interval is None:
+        return "n/a"
+    return f"{interval.point:.1f} [{interval.low:.1f}, {interval.high:.1f}]"
+
+
+def _method_label(entry: Entry) -> str:
+    return f"{entry.submission.method} (reference)" if entry.is_reference else entry.submission.method
+
+
+def _markdown_cell(text: str) -> str:
+    return text.replace("\\", "\\\\").replace("|", "\\|").replace("\n", " ")
+
+
+def _normalization_notes(board: Board) -> list[str]:
+    notes = []
+    for budget, normalization in sorted(board.normalizations.items()):
+        if normalization.scored_tasks:
+            notes.append(f"Normalized scores, budget `{budget}`: over {len(normalization.scored_tasks)} of "
+                         f"{len(board.tasks)} core tasks ({', '.join(normalization.scored_tasks)}).")
+        else:
+            notes.append(f"Normalized scores, budget `{budget}`: none yet; no core task has both a random and "
+                         "an oracle reference at this budget.")
+        for task, reason in sorted(normalization.excluded.items()):
+            notes.append(f"Excluded from the `{budget}` normalized scores: `{task}`: {reason}")
+    return notes
+
+
+def render_markdown(board: Board) -> str:
+    """The README table: method, track, budget, IQM [95% CI], mean, optimality gap, per-task raw means."""
+    from offdyn_bench import protocol
+
+    lines = [f"Protocol {protocol.PROTOCOL_VERSION}; {len(board.entries)} submission(s). Scores are normalized "
+             "(0 = random policy, 100 = oracle, SAC trained on the target at the same budget) and recomputed "
+             "from the raw returns; IQM, mean and optimality gap with stratified-bootstrap 95% intervals. "
+             "Per-task columns are raw mean target returns.", ""]
+    header = ["method", "track", "budget", "seeds", "IQM [95% CI]", "mean [95% CI]", "optimality gap [95% CI]",
+              *board.tasks]
+    lines.append("| " + " | ".join(header) + " |")
+    lines.append("|" + "|".join(["---"] * 3 + ["---:"] * (len(header) - 3)) + "|")
+    for entry in board.entries:
+        submission = entry.submission
+        seeds = len(next(iter(submission.tasks.values())).seeds)
+        cells = [_method_label(entry), submission.track, submission.budget, str(seeds), _interval_text(entry.iqm),
+                 _interval_text(entry.mean), _interval_text(entry.optimality_gap),
+                 *(_number(entry.raw_mean[task]) for task in board.tasks)]
+        lines.append("| " + " | ".join(_markdown_cell(c) for c in cells) + " |")
+    lines.append("")
+    lines.extend(f"- {_markdown_cell(note)}" for note in _normalization_notes(board))
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------------
+# Plots
+# --------------------------------------------------------------------------------------------
+
+_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+           "#bcbd22", "#17becf")
+
+
+def _png(figure: object) -> str:
+    buffer = io.BytesIO()
+    # No "Software" (matplotlib's version) and no dates: the bytes depend on the data alone.
+    figure.savefig(buffer, format="png", dpi=100, metadata={"Software": None})  # type: ignore[attr-defined]
+    return base64.b64encode(buffer.getvalue()).decode("ascii")
+
+
+def _profile_plots(board: Board) -> list[tuple[str, str]]:
+    """(title, base64 PNG) of one performance-profile figure per track and budget with scored entries."""
+    # A bare Figure (no pyplot): no global state, and savefig picks the Agg canvas for PNG.
+    from matplotlib.figure import Figure
+
+    from leaderboard.scores import PROFILE_TAUS
+
+    groups: dict[tuple[str, str], list[Entry]] = {}
+    for entry in board.entries:
+        if entry.normalized is not None:
+            groups.setdefault(entry.group, []).append(entry)
+    plots = []
+    for (track, budget), entries in sorted(groups.items()):
+        figure = Figure(figsize=(6.4, 4.0))
+        axes = figure.add_subplot()
+        for index, entry in enumerate(sorted(entries, key=lambda e: e.submission.method)):
+            profile, low, high = performance_profile(entry)
+            color = _COLORS[index % len(_COLORS)]
+            axes.plot(PROFILE_TAUS, profile, color=color, label=_method_label(entry))
+            axes.fill_between(PROFILE_TAUS, low, high, color=color, alpha=0.2, linewidth=0)
+        axes.set_xlabel("normalized score τ")
+        axes.set_ylabel("fraction of runs with score > τ")
+        axes.set_ylim(-0.02, 1.02)
+        axes.grid(alpha=0.3)
+        axes.legend(fontsize="small")
+        scored = len(board.normalizations[budget].scored_tasks)
+        axes.set_title(f"{track}, {budget} ({scored} tasks)")
+        figure.tight_layout()
+        plots.append((f"Performance profiles: {track}, {budget}", _png(figure)))
+    return plots
+
+
+def _learning_curve_plot(board: Board) -> str | None:
+    """One base64 PNG with a panel per core task: mean in-training target return of every entry that
+    submitted a learning curve (shaded: the range across training seeds)."""
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    with_curves = [e for e in board.entries if any(r.learning_curve for r in e.submission.tasks.values())]
+    if not with_curves:
+        return None
+    columns = min(4, len(board.tasks))
+    rows = math.ceil(len(board.tasks) / columns)
+    figure = Figure(figsize=(3.6 * columns, 2.8 * rows))
+    ordered = sorted(with_curves, key=lambda e: e.submission.key)
+    for position, task in enumerate(board.tasks):
+        axes = figure.add_subplot(rows, columns, position + 1)
+        for index, entry in enumerate(ordered):
+            curve = entry.submission.tasks[task].learning_curve
+            if not curve:
+                continue
+            steps = np.array([p.step for p in curve], dtype=np.float64)
+            values = np.array([p.target_return for p in curve], dtype=np.float64)
+            color = _COLORS[index % len(_COLORS)]
+            label = f"{_method_label(entry)} ({entry.submission.track}, {entry.submission.budget})"
+            axes.plot(steps, values.mean(axis=1), color=color, label=label, linewidth=1.2)
+            axes.fill_between(steps, values.min(axis=1), values.max(axis=1), color=color, alpha=0.15,
+                              linewidth=0)
+        axes.set_title(task, fontsize="small")
+        axes.tick_params(labelsize="x-small")
+        axes.grid(alpha=0.3)
+        if position == 0:
+            axes.legend(fontsize="x-small")
+    figure.supxlabel("training step")
+    figure.supylabel("target return (raw)")
+    figure.tight_layout()
+    return _png(figure)
+
+
+# --------------------------------------------------------------------------------------------
+# HTML
+# --------------------------------------------------------------------------------------------
+
+_STYLE = """
+body { font-family: system-ui, sans-serif; margin: 1.5rem; color: #111; }
+table { border-collapse: collapse; margin: 0.5rem 0 1.5rem; font-size: 0.9rem; }
+th, td { border: 1px solid #ccc; padding: 0.25rem 0.5rem; text-align: right; white-space: nowrap; }
+th { background: #f3f3f3; }
+td.text, th.text { text-align: left; }
+table.sortable th { cursor: pointer; user-select: none; }
+table.sortable th[aria-sort="ascending"]::after { content: " \\25B2"; }
+table.sortable th[aria-sort="descending"]::after { content: " \\25BC"; }
+.note { color: #444; max-width: 60rem; }
+img { max-width: 100%; }
+"""
+
+# Plain JS: a click on a header sorts the body rows by that column's data-sort values (numbers
+# numerically, text alphabetically, empty cells last); a second click reverses the order.
+_SCRIPT = """
+document.querySelectorAll("table.sortable").forEach(function (table) {
+  var headers = table.querySelectorAll("thead th");
+  headers.forEach(function (header, column) {
+    header.addEventListener("click", function () {
+      var ascending = header.getAttribute("aria-sort") !== "ascending";
+      headers.forEach(function (h) { h.removeAttribute("aria-sort"); });
+      header.setAttribute("aria-sort", ascending ? "ascending" : "descending");
+      var body = table.tBodies[0];
+      var rows = Array.prototype.slice.call(body.rows);
+      var key = function (row) { return row.cells[column].getAttribute("data-sort"); };
+      var numeric = rows.every(function (row) { var k = key(row); return k === "" || !isNaN(parseFloat(k)); });
+      rows.sort(function (a, b) {
+        var x = key(a), y = key(b);
+        if (x === "" || y === "") { return x === y ? 0 : (x === "" ? 1 : -1); }
+        var order = numeric ? parseFloat(x) - parseFloat(y) : (x < y ? -1 : (x > y ? 1 : 0));
+        return ascending ? order : -order;
+      });
+      rows.forEach(function (row) { body.appendChild(row); });
+    });
+  });
+});
+"""
+
+
+def _cell(text: str, sort: str | float | None, *, is_text: bool = False) -> str:
+    sort_text = "" if sort is None else (repr(float(sort)) if isinstance(sort, float) else sort)
+    css = ' class="text"' if is_text else ""
+    return f'<td{css} data-sort="{html.escape(sort_text)}">{html.escape(text)}</td>'
+
+
+def _method_cell(entry: Entry) -> str:
+    submission = entry.submission
+    label = html.escape(_method_label(entry))
+    if submission.code_url:
+        commit = f" @ {html.escape(submission.commit[:12])}" if submission.commit else ""
+        label = f'<a href="{html.escape(submission.code_url)}">{label}</a>{commit}'
+    title = html.escape(submission.description)
+    return f'<td class="text" data-sort="{html.escape(submission.method)}" title="{title}">{label}</td>'
+
+
+def _main_table(board: Board) -> str:
+    headers = ["method", "track", "budget", "seeds", "IQM [95% CI]", "mean [95% CI]", "optimality gap [95% CI]",
+               *board.tasks]
+    text_columns = 3
+    head = "".join(f'<th{" class=\"text\"" if i < text_columns else ""} scope="col">{html.escape(h)}</th>'
+                   for i, h in enumerate(headers))
+    rows = []
+    for entry in board.entries:
+        submission = entry.submission
+        seeds = len(next(iter(submission.tasks.values())).seeds)
+        cells = [_method_cell(entry), _cell(submission.track, submission.track, is_text=True),
+                 _cell(submission.budget, submission.budget, is_text=True), _cell(str(seeds), float(seeds))]
+        for interval in (entry.iqm, entry.mean, entry.optimality_gap):
+            cells.append(_cell(_interval_text(interval), None if interval is None else interval.point))
+        for task in board.tasks:
+            cells.append(_cell(_number(entry.raw_mean[task]), entry.raw_mean[task]))
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    return (f'<table class="sortable" id="leaderboard"><thead><tr>{head}</tr></thead>'
+            f'<tbody>{"".join(rows)}</tbody></table>')
+
+
+def _breakdown_table(board: Board) -> str:
+    """Per method and task: raw mean ± std across seeds, and the normalized mean where it exists."""
+    headers = ["method", "track", "budget", *board.tasks]
+    head = "".join(f'<th{" class=\"text\"" if i < 3 else ""} scope="col">{html.escape(h)}</th>'
+                   for i, h in enumerate(headers))
+    rows = []
+    for entry in board.entries:
+        submission = entry.submission
+        scored = board.normalizations[submission.budget].scored_tasks
+        cells = [_method_cell(entry), _cell(submission.track, submission.track, is_text=True),
+                 _cell(submission.budget, submission.budget, is_text=True)]
+        for task in board.tasks:
+            text = f"{entry.raw_mean[task]:.1f} ± {entry.raw_seed_std[task]:.1f}"
+            sort: float = entry.raw_mean[task]
+            if entry.normalized is not None and task in scored:
+                normalized = float(entry.normalized[:, scored.index(task)].mean())
+                text += f" ({normalized:.1f})"
+                sort = normalized
+            cells.append(_cell(text, sort))
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    return (f'<table class="sortable" id="per-task"><thead><tr>{head}</tr></thead>'
+            f'<tbody>{"".join(rows)}</tbody></table>')
+
+
+def _improvement_tables(board: Board) -> str:
+    parts = []
+    groups = sorted({(i.track, i.budget) for i in board.improvements})
+    for track, budget in groups:
+        improvements = {(i.x, i.y): i.probability for i in board.improvements
+                        if (i.track, i.budget) == (track, budget)}
+        methods = sorted({x for x, _ in improvements})
+        head = '<th class="text">P(row &gt; column)</th>' + "".join(f"<th>{html.escape(m)}</th>" for m in methods)
+        rows = []
+        for x in methods:
+            cells = [f'<th class="text" scope="row">{html.escape(x)}</th>']
+            for y in methods:
+                probability = improvements.get((x, y))
+                cells.append("<td>–</td>" if probability is None else
+                             f"<td>{probability.point:.2f} [{probability.low:.2f}, {probability.high:.2f}]</td>")
+            rows.append("<tr>" + "".join(cells) + "</tr>")
+        parts.append(f"<h3>{html.escape(track)}, {html.escape(budget)}</h3>"
+                     f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>")
+    if not parts:
+        return '<p class="note">Needs two or more methods with normalized scores on one track and budget.</p>'
+    return "".join(parts)
+
+
+def _normalization_html(normalizations: Sequence[Normalization], task_count: int) -> str:
+    items = []
+    for normalization in normalizations:
+        budget = html.escape(normalization.budget)
+        if normalization.scored_tasks:
+            items.append(f"<li>Budget <code>{budget}</code>: normalized over {len(normalization.scored_tasks)} of "
+                         f"{task_count} core tasks ({html.escape(', '.join(normalization.scored_tasks))}).</li>")
+        else:
+            items.append(f"<li>Budget <code>{budget}</code>: no normalized scores yet; no core task has both "
+                         "references at this budget.</li>")
+        for task, reason in sorted(normalization.excluded.items()):
+            items.append(f"<li>Excluded at <code>{budget}</code>: <code>{html.escape(task)}</code>: "
+                         f"{html.escape(reason)}</li>")
+    return f'<ul class="note">{"".join(items)}</ul>' if items else ""
+
+
+def render_html(board: Board) -> str:
+    from offdyn_bench import protocol
+
+    normalizations = [board.normalizations[b] for b in sorted(board.normalizations)]
+    profiles = _profile_plots(board)
+    curves = _learning_curve_plot(board)
+    profile_html = "".join(f'<h3>{html.escape(title)}</h3><img alt="{html.escape(title)}" '
+                           f'src="data:image/png;base64,{png}">' for title, png in profiles) or \
+        '<p class="note">No entry has normalized scores yet.</p>'
+    curve_html = (f'<img alt="Learning curves" src="data:image/png;base64,{curves}">' if curves else
+                  '<p class="note">No submission includes learning curves.</p>')
+    return f"""<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>offdyn-bench leaderboard</title>
+<style>{_STYLE}</style>
+</head>
+<body>
+<h1>offdyn-bench leaderboard</h1>
+<p class="note">Protocol {html.escape(protocol.PROTOCOL_VERSION)}, {len(board.entries)} submission(s).
+Every score is recomputed from the submitted raw per-seed, per-episode target returns. Normalized score =
+100 &times; (J &minus; J<sub>random</sub>) / (J<sub>oracle</sub> &minus; J<sub>random</sub>), per training seed;
+IQM, mean and optimality gap (shortfall from 100) with stratified-bootstrap 95% intervals. Per-task columns
+are raw mean target returns. Click a column header to sort.</p>
+{_normalization_html(normalizations, len(board.tasks))}
+<h2>Leaderboard</h2>
+{_main_table(board)}
+<h2>Per task</h2>
+<p class="note">Raw mean target return &plusmn; standard deviation across training seeds; the normalized
+mean in parentheses where the task has both references.</p>
+{_breakdown_table(board)}
+<h2>Probability of improvement</h2>
+<p class="note">P(X &gt; Y): the probability that a run of the row's method beats a run of the column's
+method on a task drawn uniformly from the scored tasks (ties count 1/2), with its 95% interval.</p>
+{_improvement_tables(board)}
+<h2>Performance profiles</h2>
+{profile_html}
+<h2>Learning curves</h2>
+{curve_html}
+<script>{_SCRIPT}</script>
+</body>
+</html>
+"""
+
+
+def build_site(store: Path, out: Path, *, references: Path | None = None) -> tuple[Path, Path]:
+    """Render ``store`` into ``out/leaderboard.md`` and ``out/index.html``; both written atomically."""
+    from leaderboard.scores import score_board
+    from leaderboard.store import load_store
+
+    board = score_board(load_store(store), references=references)
+    markdown, page = render_markdown(board), render_html(board)
+    out.mkdir(parents=True, exist_ok=True)
+    write_file_atomic(out / "leaderboard.md", markdown.encode())
+    write_file_atomic(out / "index.html", page.encode())
+    return out / "leaderboard.md", out / "index.html"
