@@ -189,3 +189,76 @@ def test_prev_state_follows_set_state_between_steps():
     np.testing.assert_array_equal(info["prev_state"][1: 1 + base.model.nq], qpos)
     with pytest.raises(ValueError, match="read-only"):
         info["state"][0] = 1.0
+
+
+# --- hot path: noise drawn in blocks, states handed out in blocks ------------------------------
+
+def test_noise_drawn_in_blocks_is_exactly_what_per_step_draws_give():
+    """The wrapper draws noise for many steps at once; recorded datasets rely on it giving the very
+    numbers of one ``rng.normal(0.0, std)`` call per stage and step, in the order of the stages."""
+    effects = [{"kind": "action_noise", "std": 0.3},
+               {"kind": "obs_noise", "std": 0.2, "target": 4},
+               {"kind": "action_noise", "std": 0.1, "target": "foot_joint"},
+               {"kind": "obs_noise", "std": 0.05}]
+    env = make_robot_env("Hopper", effects, terminate_when_unhealthy=False)
+    plain = make_robot_env("Hopper", terminate_when_unhealthy=False)
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(300, 3))  # crosses several block ends
+    foot = np.arange(3) == 2
+    obs4 = np.arange(11) == 4
+    for seed in (3, None):
+        obs, _ = env.reset(seed=seed)
+        expected_obs, _ = plain.reset(seed=seed)
+        rng = np.random.default_rng(int(plain.unwrapped.np_random.integers(2**63)))  # as the wrapper seeds
+        expected_obs = expected_obs + rng.normal(0.0, 0.2, 11) * obs4 + rng.normal(0.0, 0.05, 11)
+        np.testing.assert_array_equal(obs, expected_obs)
+        for action in actions:
+            command = action + rng.normal(0.0, 0.3, 3) + rng.normal(0.0, 0.1, 3) * foot
+            expected_obs = plain.step(command)[0]
+            expected_obs = expected_obs + rng.normal(0.0, 0.2, 11) * obs4 + rng.normal(0.0, 0.05, 11)
+            obs, _, _, _, info = env.step(action)
+            np.testing.assert_array_equal(info["applied_action"], command)
+            np.testing.assert_array_equal(obs, expected_obs)
+
+
+def test_noise_transform_gives_the_values_of_rng_normal():
+    from offdyn_bench.effects import ActionNoise
+
+    x = np.array([[-0.0, 0.5, -0.0], [1.0, -2.0, 0.0]] * 50)
+    mask = np.array([True, False, True])
+    for std in (0.0, 0.4):
+        for m in (None, mask):
+            noise = np.random.default_rng(1).normal(0.0, std, size=x.shape)
+            expected = x + (noise if m is None else noise * m)
+            got = ActionNoise(std=std).transform(x, m, np.random.default_rng(1))
+            assert got.tobytes() == expected.tobytes()  # bit for bit, signed zeros included
+
+
+def test_reset_with_a_seed_replays_the_noise_whatever_came_before():
+    def applied(history: list[tuple[int | None, int]]) -> np.ndarray:
+        env = gymnasium.make("offdyn/Hopper-joint-noise-0.5-target-v0", terminate_when_unhealthy=False)
+        for seed, steps in history:
+            env.reset(seed=seed)
+            out = [env.step(np.zeros(3))[4]["applied_action"] for _ in range(steps)]
+        return np.array(out)
+
+    reference = applied([(5, 120)])
+    # a block left half used by an earlier episode must not leak into the reseeded one
+    np.testing.assert_array_equal(applied([(1, 37), (None, 3), (5, 120)]), reference)
+    assert not np.array_equal(applied([(6, 120)]), reference)
+
+
+def test_states_stay_distinct_read_only_and_unchanged_across_state_blocks():
+    env = make_robot_env("Hopper", terminate_when_unhealthy=False)
+    _, info = env.reset(seed=0)
+    kept, copies = [info["state"]], [info["state"].copy()]
+    for action in np.random.default_rng(0).uniform(-1, 1, size=(200, 3)):  # > 3 blocks of states
+        _, _, _, _, info = env.step(action)
+        assert info["prev_state"] is kept[-1]
+        kept.append(info["state"])
+        copies.append(info["state"].copy())
+        np.testing.assert_array_equal(info["state"][1: 1 + env.unwrapped.model.nq], env.unwrapped.data.qpos)
+    for state, copy in zip(kept, copies, strict=True):  # no state was overwritten by a later step
+        np.testing.assert_array_equal(state, copy)
+        assert not state.flags.writeable
+    assert len({id(state) for state in kept}) == len(kept)
+    assert len({state[0] for state in kept}) == len(kept)  # each at its own time
