@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import zipfile
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -28,6 +30,8 @@ from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TaskPair
 
 ARRAYS = ("observations", "actions", "rewards", "next_observations", "terminations", "truncations")
+PER_STEP_VECTORS = ("observations", "actions", "next_observations")
+"""Arrays with one row per step (``[N, ...]``); the others are ``[N]``."""
 BEHAVIOUR_NOISE_STD = 0.1
 Policy = Callable[[np.ndarray], np.ndarray]
 """Observation (environment units) -> action (environment units)."""
@@ -45,11 +49,29 @@ class TransitionDataset:
     truncations: np.ndarray
 
     def __post_init__(self) -> None:
+        for name in ARRAYS:
+            array = getattr(self, name)
+            if not isinstance(array, np.ndarray):
+                raise OffdynError(f"dataset {name} is a {type(array).__name__}; expected a numpy array")
+            if array.dtype.kind not in "biuf":
+                raise OffdynError(f"dataset {name} has dtype {array.dtype}; expected real numbers or booleans")
+            expected_ndim = "at least 2 dimensions" if name in PER_STEP_VECTORS else "1 dimension"
+            if (array.ndim < 2) if name in PER_STEP_VECTORS else (array.ndim != 1):
+                raise OffdynError(f"dataset {name} has shape {array.shape}; expected {expected_ndim} "
+                                  "(one row per step)")
+            if array.dtype.kind == "f" and not np.isfinite(array).all():
+                row = int(np.flatnonzero(~np.isfinite(array.reshape(len(array), -1)).all(axis=1))[0])
+                raise OffdynError(f"dataset {name} holds NaN or infinite values (first in row {row}); expected "
+                                  "finite numbers")
         n = len(self.rewards)
         for name in ARRAYS:
             if len(getattr(self, name)) != n:
                 raise OffdynError(f"dataset arrays differ in length: {name} has {len(getattr(self, name))} "
                                   f"rows, rewards has {n}")
+        for name in ("terminations", "truncations"):
+            flags = getattr(self, name)
+            if flags.dtype.kind != "b" and not np.isin(flags, (0, 1)).all():
+                raise OffdynError(f"dataset {name} holds values other than 0 and 1; expected booleans")
 
     def __len__(self) -> int:
         return len(self.rewards)
@@ -59,11 +81,39 @@ class TransitionDataset:
 
     @classmethod
     def from_npz(cls, path: str | Path) -> TransitionDataset:
-        with np.load(path) as data:
-            missing = [name for name in ARRAYS if name not in data]
-            if missing:
-                raise OffdynError(f"dataset {str(path)!r} lacks arrays {missing}; expected {list(ARRAYS)}")
-            return cls(**{name: data[name] for name in ARRAYS})
+        """Read an ``.npz`` of :data:`ARRAYS`; anything else (an empty, truncated or foreign file,
+        pickled objects) is an :class:`OffdynError` saying so."""
+        expected = f"expected an .npz written by numpy.savez with arrays {', '.join(ARRAYS)}"
+        arrays = {}
+        try:
+            # allow_pickle stays off: loading pickled objects from a dataset file can run code.
+            data = np.load(path, allow_pickle=False)
+            if not isinstance(data, np.lib.npyio.NpzFile):
+                raise OffdynError(f"dataset {str(path)!r} holds a single array, not an .npz archive; {expected}")
+            with data:
+                missing = [name for name in ARRAYS if name not in data.files]
+                if missing:
+                    raise OffdynError(f"dataset {str(path)!r} lacks arrays {missing}; {expected}")
+                for name in ARRAYS:
+                    arrays[name] = data[name]
+        except OffdynError:
+            raise
+        except EOFError:
+            raise OffdynError(f"dataset {str(path)!r} is empty; {expected}") from None
+        except (zipfile.BadZipFile, zlib.error) as error:
+            raise OffdynError(f"dataset {str(path)!r} is damaged or truncated ({error}); {expected}") from None
+        except ValueError as error:
+            if "allow_pickle" in str(error):
+                raise OffdynError(f"dataset {str(path)!r} holds a Python object array, which is not loaded "
+                                  f"(it could run code); {expected}") from None
+            raise OffdynError(f"dataset {str(path)!r} cannot be read ({_one_line(error)}); {expected}") from None
+        except OSError as error:
+            raise OffdynError(f"dataset {str(path)!r} cannot be read ({error.strerror or _one_line(error)}); "
+                              f"{expected}") from None
+        try:
+            return cls(**arrays)
+        except OffdynError as error:
+            raise OffdynError(f"{str(path)!r}: {error}") from None
 
     def sha256(self) -> str:
         digest = hashlib.sha256()
@@ -93,6 +143,10 @@ class TransitionDataset:
         scaled = 2.0 * (self.actions - action_space.low) / (action_space.high - action_space.low) - 1.0
         return Batch(tensor(self.observations), tensor(scaled), tensor(self.rewards),
                      tensor(self.next_observations), tensor(self.terminations))
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join(str(error).split()) or type(error).__name__
 
 
 def collect_target_dataset(task: TaskPair, policy: Policy | str, n_transitions: int, seed: int
@@ -167,8 +221,10 @@ def load_dataset(spec: str, task: TaskPair, seed: int = 0) -> tuple[TransitionDa
         provenance = {"kind": "collected", "policy": policy, "n_transitions": int(count), "seed": seed,
                       "behaviour_noise_std": None if policy == "random" else BEHAVIOUR_NOISE_STD}
     elif spec.endswith(".npz"):
-        if not Path(spec).is_file():
+        if not Path(spec).exists():
             raise OffdynError(f"dataset file {spec!r} does not exist")
+        if not Path(spec).is_file():
+            raise OffdynError(f"dataset {spec!r} is not a file; expected an .npz file")
         dataset = TransitionDataset.from_npz(spec)
         provenance = {"kind": "npz", "path": str(Path(spec).resolve())}
     elif spec.count("/") >= 2:
