@@ -1,0 +1,366 @@
+"""Score anything that acts under the protocol: this suite's training runs or a user's policy.
+
+``evaluate(agent, task)`` runs the final policy of every training seed for
+:data:`~offdyn_bench.protocol.EVAL_EPISODES` target episodes with the protocol's fixed episode
+seeds and deterministic actions, and returns (and writes) raw per-episode returns with the
+versions, the task's version and the protocol version: the ``evaluation.json`` that
+``offdyn-bench leaderboard submit`` and the oracle references read.
+
+An agent is either
+
+* a run folder written by ``offdyn-bench train`` (one agent per training seed, read from the final
+  checkpoint), or
+* ``package.module:factory``: ``factory`` is called once per training seed with the keyword
+  arguments it accepts among ``task`` (the task name) and ``seed`` (the training seed) and returns
+  an :class:`Agent` (or a plain function from an observation to an action).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib
+import inspect
+import json
+import os
+import pathlib
+import shlex
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.protocol.definition import (
+    BUDGETS,
+    EPISODE_SEEDS,
+    EVAL_EPISODES,
+    PROTOCOL_VERSION,
+    REFERENCE_METHODS,
+    TRACKS,
+    ProtocolError,
+    check_method_on_track,
+    get_budget,
+    get_track,
+    official_dataset,
+    track_of_method,
+)
+
+EVALUATION_FILE = "evaluation.json"
+FORMAT = "offdyn-bench/evaluation"
+
+
+@runtime_checkable
+class Agent(Protocol):
+    """Anything that can act in a task's target: one observation in, one action (env units) out.
+
+    ``reset()``, when an agent has it, is called before every episode."""
+
+    def act(self, observation: np.ndarray) -> np.ndarray: ...
+
+
+class EvaluationError(OffdynError):
+    """An agent or run that cannot be evaluated as asked."""
+
+
+@dataclasses.dataclass
+class _FunctionAgent:
+    function: Callable[[np.ndarray], np.ndarray]
+
+    def act(self, observation: np.ndarray) -> np.ndarray:
+        return self.function(observation)
+
+
+@dataclasses.dataclass
+class LoadedAgents:
+    """The agents of one evaluation, one per training seed, and what is known about them."""
+
+    agents: list[tuple[int, Agent]]
+    description: dict[str, Any]
+    method: str | None = None
+    task: str | None = None
+    steps: int | None = None
+    dataset: dict[str, Any] | None = None
+    train_command: str | None = None
+
+
+def _sha256_arrays(arrays: Sequence[np.ndarray]) -> str:
+    digest = hashlib.sha256()
+    for array in arrays:
+        digest.update(str(array.shape).encode())
+        digest.update(np.ascontiguousarray(array, dtype=np.float32).tobytes())
+    return digest.hexdigest()
+
+
+def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
+    """One deterministic agent per training seed of a finished ``offdyn-bench train`` run."""
+    from baselines.checkpoint import latest_checkpoint, load_checkpoint
+    from offdyn_bench.datasets.policies import MLPPolicy
+    from offdyn_bench.tasks import get_task
+
+    run_dir = pathlib.Path(run_dir)
+    try:
+        config = json.loads((run_dir / "config.json").read_text())
+        result = json.loads((run_dir / "result.json").read_text())
+    except FileNotFoundError as error:
+        what = "config.json" if "config.json" in str(error) else "result.json"
+        hint = ("it is not a training run folder" if what == "config.json"
+                else "the run has not finished; run its train command again to finish it")
+        raise EvaluationError(f"{str(run_dir)!r} has no {what}: {hint}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise EvaluationError(f"{str(run_dir)!r}: config.json or result.json cannot be read ({error})") from None
+    try:
+        checkpoint = latest_checkpoint(run_dir)
+    except OffdynError as error:
+        raise EvaluationError(f"{str(run_dir)!r}: {error}") from None
+    if checkpoint is None:
+        raise EvaluationError(f"{str(run_dir)!r} has no complete checkpoint to evaluate")
+    try:
+        tensors, trainer = load_checkpoint(checkpoint)
+    except OffdynError as error:
+        raise EvaluationError(f"{str(run_dir)!r}: {error}") from None
+    if int(trainer.get("step", -1)) != int(config["steps"]):
+        raise EvaluationError(f"{str(run_dir)!r}: the newest checkpoint is at step {trainer.get('step')}, "
+                              f"not the run's final step {config['steps']}")
+    pair = get_task(config["task"])
+    space = pair.make("target").action_space
+    action_dim = int(np.prod(space.shape))
+    names = sorted((k for k in tensors if k.startswith("actor.") and k.split(".")[1].isdigit()),
+                   key=lambda k: int(k.split(".")[1]))
+    params = [tensors[k].detach().cpu().numpy() for k in names]
+    if not params or len(params) % 2:
+        raise EvaluationError(f"{str(run_dir)!r}: the checkpoint holds no actor network")
+    agents: list[tuple[int, Agent]] = []
+    hashes = {}
+    for member, seed in enumerate(config["seeds"]):
+        layers = []
+        for i in range(len(params) // 2):
+            weight, bias = params[2 * i][member].T, params[2 * i + 1][member].reshape(-1)
+            if i == len(params) // 2 - 1:
+                # Output = (mean, log-std); the deployed action is the mean's last action_dim
+                # entries (all of it for SAC, a_t for DAP's (a_s, a_t)).
+                half = weight.shape[0] // 2
+                weight, bias = weight[half - action_dim:half], bias[half - action_dim:half]
+            layers.append((weight, bias))
+        policy = MLPPolicy(layers, "relu", space.low, space.high)
+        agents.append((int(seed), _FunctionAgent(policy)))
+        hashes[str(seed)] = _sha256_arrays([a for layer in layers for a in layer])
+    train_command = (f"offdyn-bench train {config['algo']} --task {config['task']} --steps {config['steps']} "
+                     f"--seed {config['seeds'][0]} --n-seeds {len(config['seeds'])}"
+                     + (f" --dataset {config['dataset']}" if config.get("dataset") else "")
+                     + f" --out {run_dir}")
+    dataset = result.get("dataset") or config.get("dataset_provenance")
+    return LoadedAgents(agents=agents, method=config["algo"], task=pair.name, steps=int(config["steps"]),
+                        dataset=dataset, train_command=train_command,
+                        description={"kind": "run", "path": str(run_dir), "checkpoint": checkpoint.name,
+                                     "policy_sha256": hashes})
+
+
+def load_factory_agents(spec: str, task: str, seeds: Sequence[int]) -> LoadedAgents:
+    """``package.module:factory``, called once per training seed."""
+    module_name, sep, attribute = spec.partition(":")
+    if not sep or not module_name or not attribute:
+        raise EvaluationError(f"--agent {spec!r} is neither a run folder nor 'package.module:factory'")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as error:
+        raise EvaluationError(f"--agent {spec!r}: cannot import {module_name!r} ({error})") from None
+    factory = getattr(module, attribute, None)
+    if not callable(factory):
+        raise EvaluationError(f"--agent {spec!r}: {module_name} has no callable {attribute!r}")
+    try:
+        accepted = set(inspect.signature(factory).parameters)
+    except (TypeError, ValueError):
+        accepted = set()
+    agents: list[tuple[int, Agent]] = []
+    for seed in seeds:
+        kwargs = {k: v for k, v in (("task", task), ("seed", int(seed))) if k in accepted}
+        agent = factory(**kwargs)
+        if not isinstance(agent, Agent):
+            if not callable(agent):
+                raise EvaluationError(f"--agent {spec!r}: the factory returned {type(agent).__name__}, which has "
+                                      "no act(observation) method and is not callable")
+            agent = _FunctionAgent(agent)
+        agents.append((int(seed), agent))
+    source = inspect.getsourcefile(module) if hasattr(module, "__file__") else None
+    digest = hashlib.sha256(pathlib.Path(source).read_bytes()).hexdigest() if source else None
+    return LoadedAgents(agents=agents, task=task,
+                        description={"kind": "factory", "path": spec, "module_sha256": digest})
+
+
+def _act(agent: Agent, observation: np.ndarray, space: Any, where: str) -> np.ndarray:
+    action = np.asarray(agent.act(observation), dtype=np.float64)
+    if action.shape != space.shape:
+        action = action.reshape(-1) if action.size == int(np.prod(space.shape)) else action
+        if action.shape != space.shape:
+            raise EvaluationError(f"{where}: the agent returned an action of shape {action.shape}; "
+                                  f"expected {space.shape}")
+    if not np.all(np.isfinite(action)):
+        raise EvaluationError(f"{where}: the agent returned a NaN or infinite action")
+    # The trainer clips to the box as well: an out-of-range command means the limit.
+    return np.clip(action, space.low, space.high).astype(space.dtype)
+
+
+def episode_returns(agent: Agent, env: Any, episode_seeds: Sequence[int], where: str) -> list[float]:
+    """Undiscounted returns of full target episodes, one per seed."""
+    returns = []
+    for episode_seed in episode_seeds:
+        if callable(getattr(agent, "reset", None)):
+            agent.reset()  # type: ignore[attr-defined]
+        observation, _ = env.reset(seed=int(episode_seed))
+        total, done = 0.0, False
+        while not done:
+            observation, reward, terminated, truncated, _ = env.step(_act(agent, observation, env.action_space,
+                                                                          where))
+            total += float(reward)
+            done = terminated or truncated
+        returns.append(total)
+    return returns
+
+
+def _conformance(loaded: LoadedAgents, task: str, track: str | None, budget: str | None,
+                 episodes: int) -> tuple[str | None, str | None, list[str]]:
+    """(track, budget, reasons the evaluation is not a protocol result)."""
+    notes = []
+    known = {m for t in TRACKS.values() for m in t.methods} | set(REFERENCE_METHODS)
+    if loaded.method in known:
+        home = track_of_method(loaded.method)
+        if track is None:
+            track = home
+        elif home is not None:
+            check_method_on_track(loaded.method, track)
+    if track is not None:
+        get_track(track)
+    if loaded.steps is not None:
+        at_budget = [name for name, b in BUDGETS.items() if b.source_steps == loaded.steps]
+        if budget is None:
+            budget = at_budget[0] if at_budget else None
+            if budget is None:
+                notes.append(f"trained for {loaded.steps} steps, not at a protocol budget "
+                             f"({', '.join(f'{n}: {b.source_steps}' for n, b in BUDGETS.items())})")
+        elif budget not in at_budget:
+            raise ProtocolError(f"the run trained for {loaded.steps} steps; budget {budget!r} is "
+                                f"{get_budget(budget).source_steps} steps")
+    elif budget is not None:
+        get_budget(budget)
+    if budget is None and loaded.steps is None:
+        notes.append("no budget given (--budget)")
+    if track is None and loaded.method not in REFERENCE_METHODS:
+        notes.append("no track given (--track)")
+    if episodes != EVAL_EPISODES:
+        notes.append(f"{episodes} episodes per seed; the protocol evaluates {EVAL_EPISODES}")
+    if track is not None and loaded.dataset is not None:
+        official = official_dataset(task, track)
+        used = loaded.dataset.get("id") or loaded.dataset.get("spec")
+        if official is not None and used != official:
+            notes.append(f"trained on dataset {used!r}; the track's official dataset is {official!r}")
+    return track, budget, notes
+
+
+def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: str | None = None,
+             budget: str | None = None, seeds: Sequence[int] | None = None, episodes: int = EVAL_EPISODES,
+             out: str | os.PathLike[str] | None = None, method: str | None = None,
+             progress: bool = True) -> dict[str, Any]:
+    """Evaluate ``agent`` (a run folder or ``module:factory``) on ``task``'s target; write the
+    record to ``out`` (default: ``<run folder>/evaluation.json``; none for a factory without
+    ``out``) and return it."""
+    from tqdm import tqdm
+
+    from offdyn_bench.tasks import get_task
+    from offdyn_bench.versions import versions
+
+    if not 1 <= episodes <= len(EPISODE_SEEDS) * 50:
+        raise EvaluationError(f"episodes={episodes}; expected an integer in [1, {len(EPISODE_SEEDS) * 50}]")
+    agent_path = pathlib.Path(agent)
+    is_run = agent_path.is_dir()
+    if is_run:
+        if seeds is not None:
+            raise EvaluationError("--seeds applies to a module:factory agent; a run folder has its own seeds")
+        loaded = load_run_agents(agent_path)
+        if task is not None and get_task(task).name != loaded.task:
+            raise EvaluationError(f"the run was trained on {loaded.task!r}, not {task!r}")
+        task = loaded.task
+    else:
+        if task is None:
+            raise EvaluationError("--task is required for a module:factory agent")
+        task = get_task(task).name
+        loaded = load_factory_agents(str(agent), task, list(seeds) if seeds is not None else [0])
+    if method is not None:
+        if loaded.method is not None and method != loaded.method:
+            raise EvaluationError(f"--method {method!r} contradicts the run's algorithm {loaded.method!r}")
+        loaded.method = method
+    assert task is not None
+    track, budget, notes = _conformance(loaded, task, track, budget, episodes)
+    target = pathlib.Path(out) if out is not None else (agent_path / EVALUATION_FILE if is_run else None)
+    if target is not None:
+        _check_writable(target)
+
+    pair = get_task(task)
+    episode_seeds = [int(EPISODE_SEEDS[0]) + e for e in range(episodes)]
+    env = pair.make("target")
+    per_seed = []
+    bar = tqdm(total=len(loaded.agents) * episodes, unit="episode", disable=not progress,
+               desc=f"evaluate {pair.name}")
+    try:
+        for seed, agent_obj in loaded.agents:
+            returns = []
+            for episode_seed in episode_seeds:
+                returns += episode_returns(agent_obj, env, [episode_seed], f"seed {seed}, episode seed {episode_seed}")
+                bar.update(1)
+            per_seed.append({"seed": seed, "returns": returns})
+    finally:
+        bar.close()
+        env.close()
+    record = {
+        "format": FORMAT, "format_version": 1, "protocol_version": PROTOCOL_VERSION,
+        "task": pair.name, "task_version": pair.version, "target_env_id": pair.env_id("target"),
+        "track": track, "budget": budget, "method": loaded.method, "agent": loaded.description,
+        "steps": loaded.steps, "dataset": loaded.dataset, "train_command": loaded.train_command,
+        "episode_seeds": episode_seeds, "seeds": per_seed,
+        "protocol_conformant": not notes, "notes": notes,
+        "versions": versions(),
+        "command": "offdyn-bench evaluate " + shlex.join(_command_args(agent, task, track, budget, episodes)),
+    }
+    if target is not None:
+        _write_atomic(target, record)
+    return record
+
+
+def _command_args(agent: Any, task: str, track: str | None, budget: str | None, episodes: int) -> list[str]:
+    args = ["--agent", str(agent), "--task", task]
+    args += ["--track", track] if track else []
+    args += ["--budget", budget] if budget else []
+    args += ["--episodes", str(episodes)] if episodes != EVAL_EPISODES else []
+    return args
+
+
+def _check_writable(path: pathlib.Path) -> None:
+    parent = path.parent
+    if parent.exists() and not parent.is_dir():
+        raise EvaluationError(f"cannot write {str(path)!r}: {str(parent)!r} is a file")
+    probe_dir = next((p for p in [parent, *parent.parents] if p.exists()), None)
+    if probe_dir is None or not os.access(probe_dir, os.W_OK):
+        raise EvaluationError(f"cannot write {str(path)!r}: {str(probe_dir)!r} is not writable")
+
+
+def _write_atomic(path: pathlib.Path, record: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        partial.write_text(json.dumps(record, indent=1) + "\n")
+        os.replace(partial, path)
+    except OSError as error:
+        partial.unlink(missing_ok=True)
+        raise EvaluationError(f"cannot write {str(path)!r}: {error}") from None
+
+
+def read_evaluation(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """An ``evaluation.json``, checked for its format."""
+    path = pathlib.Path(path)
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise EvaluationError(f"cannot read evaluation {str(path)!r}: {error}") from None
+    if not isinstance(record, dict) or record.get("format") != FORMAT:
+        raise EvaluationError(f"{str(path)!r} is not an {FORMAT} file")
+    return record

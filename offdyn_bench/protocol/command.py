@@ -1,0 +1,162 @@
+"""``offdyn-bench evaluate`` and ``offdyn-bench protocol ...``: score anything under the protocol.
+
+Heavy libraries (gymnasium, torch, mujoco) load inside the commands, so attaching them keeps
+``offdyn-bench --help`` quick.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from offdyn_bench.errors import OffdynError
+
+protocol_app = typer.Typer(no_args_is_help=True, add_completion=False,
+                           help="The fixed evaluation protocol: show it, record reference scores, score results.")
+reference_app = typer.Typer(no_args_is_help=True, add_completion=False,
+                            help="Record reference scores (random policy, sac-target oracle) with provenance.")
+protocol_app.add_typer(reference_app, name="reference")
+
+
+def _fail(error: Exception) -> typer.Exit:
+    typer.echo(f"error: {error}", err=True)
+    return typer.Exit(2)
+
+
+def _parse_seeds(text: str | None) -> list[int] | None:
+    if text is None:
+        return None
+    try:
+        seeds = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise OffdynError(f"--seeds {text!r}: expected comma-separated integers, e.g. 0,1,2,3,4") from None
+    if not seeds or len(set(seeds)) != len(seeds) or any(s < 0 for s in seeds):
+        raise OffdynError(f"--seeds {text!r}: expected distinct non-negative integers, e.g. 0,1,2,3,4")
+    return seeds
+
+
+def evaluate_command(
+    agent: str = typer.Option(..., "--agent", help="A run folder of `offdyn-bench train`, or package.module:factory "
+                                                   "returning an object with act(observation) -> action."),
+    task: str | None = typer.Option(None, "--task", help="Task pair (default: the run's task)."),
+    track: str | None = typer.Option(None, "--track", help="offline-target or online-target (default: the "
+                                                           "method's track)."),
+    budget: str | None = typer.Option(None, "--budget", help="full or lite (default: read from the run's steps)."),
+    seeds: str | None = typer.Option(None, "--seeds", help="Training seeds of a module:factory agent, e.g. 0,1,2,3,4."),
+    episodes: int = typer.Option(20, "--episodes", help="Episodes per seed (the protocol uses 20)."),
+    method: str | None = typer.Option(None, "--method", help="Method name recorded for a module:factory agent."),
+    out: Path | None = typer.Option(None, "--out", help="Where to write evaluation.json (default: inside the run "
+                                                        "folder; required to keep a factory's record)."),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
+) -> None:
+    """Evaluate the final policy of every training seed on the task's target under the protocol:
+    deterministic actions, fixed episode seeds; writes raw per-episode returns with versions."""
+    from offdyn_bench.evaluate import evaluate
+    from offdyn_bench.protocol.scoring import method_scores
+
+    try:
+        record = evaluate(agent, task, track=track, budget=budget, seeds=_parse_seeds(seeds), episodes=episodes,
+                          out=out, method=method, progress=progress)
+        scores = method_scores(record["method"] or "agent", [record], record["budget"])
+    except OffdynError as error:
+        raise _fail(error) from None
+    for i, seed in enumerate(scores.seeds):
+        line = f"seed {seed}: mean target return {scores.raw[i, 0]:.1f}"
+        if scores.normalized is not None:
+            line += f", normalized {scores.normalized[i, 0]:.1f}"
+        typer.echo(line)
+    if scores.missing_references:
+        typer.echo(f"no normalized score: {record['task']} has no random and oracle reference"
+                   + (f" at budget {record['budget']!r}" if record["budget"] else " (no protocol budget)"))
+    for note in record["notes"]:
+        typer.echo(f"not a protocol result: {note}")
+    where = out if out is not None else (Path(agent) / "evaluation.json" if Path(agent).is_dir() else None)
+    if where is not None:
+        typer.echo(f"wrote {where}")
+
+
+@protocol_app.command("show")
+def show(as_json: bool = typer.Option(False, "--json", help="Print the protocol as JSON.")) -> None:
+    """Print the protocol: version, tracks, budgets, evaluation, core suite, references present."""
+    from offdyn_bench.protocol import definition
+    from offdyn_bench.protocol.references import reference_scores
+
+    try:
+        references = reference_scores()
+    except OffdynError as error:
+        raise _fail(error) from None
+    summary = definition.summary()
+    summary["references"] = {task: sorted(kinds) for task, kinds in references.items()}
+    if as_json:
+        typer.echo(json.dumps(summary, indent=1))
+        return
+    typer.echo(f"protocol {summary['protocol_version']} (PROTOCOL.md)")
+    for track in definition.TRACKS.values():
+        typer.echo(f"track {track.name}: {track.description}; methods {', '.join(track.methods)}")
+    for name, text in definition.REFERENCE_METHODS.items():
+        typer.echo(f"reference {name}: {text}")
+    for budget in definition.BUDGETS.values():
+        typer.echo(f"budget {budget.name}: {budget.source_steps:,} source steps ({budget.description})")
+    typer.echo(f"evaluation: final policy, deterministic actions, {definition.EVAL_EPISODES} target episodes "
+               f"(seeds {definition.EPISODE_SEEDS[0]}..{definition.EPISODE_SEEDS[-1]}), "
+               f"at least {definition.MIN_SEEDS} training seeds")
+    typer.echo("core suite:")
+    for task in definition.CORE_SUITE:
+        kinds = sorted(references.get(task, {}))
+        typer.echo(f"  {task:36s} references: {', '.join(kinds) if kinds else 'none yet'}")
+
+
+@reference_app.command("random")
+def reference_random(task: list[str] = typer.Option([], "--task", help="Task pair (repeatable)."),
+                     core_suite: bool = typer.Option(False, "--core-suite", help="Every core-suite task.")) -> None:
+    """Measure the uniform-random policy on the protocol's episode seeds and record it."""
+    from offdyn_bench.protocol.definition import CORE_SUITE
+    from offdyn_bench.protocol.references import REFERENCE_FILE, record_random_reference
+    from offdyn_bench.tasks import get_task
+
+    try:
+        tasks = list(CORE_SUITE) if core_suite else [get_task(t).name for t in task]
+        if not tasks:
+            raise OffdynError("name a task with --task, or pass --core-suite")
+        for name in tasks:
+            score = record_random_reference(name)
+            typer.echo(f"{name}: random {score.mean_return:.1f} over {len(score.returns)} episodes")
+    except OffdynError as error:
+        raise _fail(error) from None
+    typer.echo(f"wrote {REFERENCE_FILE}")
+
+
+@reference_app.command("oracle")
+def reference_oracle(evaluations: list[Path] = typer.Argument(..., help="evaluation.json of sac-target runs of one "
+                                                                       "task at one budget.")) -> None:
+    """Record sac-target evaluations as a task's oracle at their budget."""
+    from offdyn_bench.evaluate import read_evaluation
+    from offdyn_bench.protocol.references import REFERENCE_FILE, record_oracle_reference
+
+    try:
+        score = record_oracle_reference([read_evaluation(path) for path in evaluations])
+    except OffdynError as error:
+        raise _fail(error) from None
+    typer.echo(f"{score.task}: oracle at budget {score.budget} = {score.mean_return:.1f} "
+               f"({len(score.provenance['seeds'])} seeds x {score.provenance['episodes_per_seed']} episodes); "
+               f"wrote {REFERENCE_FILE}")
+
+
+@protocol_app.command("score")
+def score(evaluations: list[Path] = typer.Argument(..., help="evaluation.json files (any methods and tasks)."),
+          budget: str | None = typer.Option(None, "--budget", help="Normalize against this budget's oracle "
+                                                                   "(default: the evaluations' budget)."),
+          as_json: bool = typer.Option(False, "--json")) -> None:
+    """Score evaluations: per-task raw returns, normalized scores, IQM with a 95% stratified-bootstrap
+    interval, optimality gap, and the probability of improvement between methods."""
+    from offdyn_bench.evaluate import read_evaluation
+    from offdyn_bench.protocol.report import score_report
+
+    try:
+        records = [read_evaluation(path) for path in evaluations]
+        report = score_report(records, budget)
+    except OffdynError as error:
+        raise _fail(error) from None
+    typer.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.to_text())

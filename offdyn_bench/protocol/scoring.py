@@ -1,0 +1,85 @@
+"""From raw evaluation records to normalized scores and aggregates.
+
+Scores are always recomputed from raw per-episode returns: a training seed's score is the
+normalized mean of its episodes' returns, and a method's score matrix is ``(seeds, tasks)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from offdyn_bench.protocol.definition import ProtocolError
+from offdyn_bench.protocol.references import reference_pair
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodScores:
+    """One method's results on a set of tasks at one budget."""
+
+    method: str
+    tasks: tuple[str, ...]
+    seeds: tuple[int, ...]
+    raw: np.ndarray
+    """Per-seed mean target return, ``(seeds, tasks)``."""
+    normalized: np.ndarray | None
+    """``raw`` normalized per task against the references; None when a task lacks them."""
+    missing_references: tuple[str, ...]
+
+
+def seed_means(record: Mapping[str, Any]) -> dict[int, float]:
+    """A record's per-seed mean return (the unit the statistics resample)."""
+    out = {}
+    for entry in record["seeds"]:
+        returns = np.asarray(entry["returns"], dtype=np.float64)
+        if returns.size == 0 or not np.all(np.isfinite(returns)):
+            raise ProtocolError(f"{record.get('method')} on {record.get('task')}: seed {entry['seed']} has no "
+                                "returns or non-finite ones")
+        out[int(entry["seed"])] = float(returns.mean())
+    return out
+
+
+def method_scores(method: str, records: Iterable[Mapping[str, Any]], budget: str | None,
+                  tasks: Sequence[str] | None = None,
+                  reference_file: str | None = None,
+                  references: Mapping[str, tuple[float, float]] | None = None) -> MethodScores:
+    """Collect ``method``'s records (one per task) into score matrices, normalized against the
+    reference file at ``budget``, or against explicit ``references`` (task -> (J_random,
+    J_oracle)), e.g. a demo's own oracle run at a budget of its own."""
+    by_task: dict[str, dict[int, float]] = {}
+    for record in records:
+        if record["task"] in by_task:
+            raise ProtocolError(f"{method}: two evaluations of task {record['task']!r}")
+        by_task[record["task"]] = seed_means(record)
+    tasks = tuple(tasks) if tasks is not None else tuple(sorted(by_task))
+    absent = [t for t in tasks if t not in by_task]
+    if absent:
+        raise ProtocolError(f"{method}: no evaluation of {', '.join(absent)}")
+    seeds = tuple(sorted(by_task[tasks[0]]))
+    for task in tasks:
+        if tuple(sorted(by_task[task])) != seeds:
+            raise ProtocolError(f"{method}: task {task!r} has seeds {sorted(by_task[task])}, task {tasks[0]!r} "
+                                f"has {list(seeds)}; every task needs the same training seeds")
+    raw = np.array([[by_task[t][s] for t in tasks] for s in seeds], dtype=np.float64)
+    missing = []
+    normalized = np.empty_like(raw)
+    for j, task in enumerate(tasks):
+        if references is not None:
+            if task not in references:
+                missing.append(task)
+                continue
+            j_random, j_oracle = references[task]
+        elif budget is None:
+            missing.append(task)
+            continue
+        else:
+            try:
+                j_random, j_oracle = reference_pair(task, budget, reference_file)
+            except ProtocolError:
+                missing.append(task)
+                continue
+        normalized[:, j] = 100.0 * (raw[:, j] - j_random) / (j_oracle - j_random)
+    return MethodScores(method, tasks, seeds, raw, None if missing else normalized, tuple(missing))

@@ -1,0 +1,174 @@
+"""`evaluate`: run folders and user agents scored under the protocol, and the score report."""
+
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from baselines.train import train
+from offdyn_bench.cli import app
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.evaluate import EvaluationError, evaluate, read_evaluation
+from offdyn_bench.protocol import EPISODE_SEEDS, PROTOCOL_VERSION, ProtocolError
+from offdyn_bench.protocol.report import score_report
+from offdyn_bench.protocol.statistics import iqm
+
+PENDULUM = "invertedpendulum-gravity-3.0"
+TINY = {"sac.hidden_sizes": "[16, 16]", "sac.batch_size": "16", "random_steps": "20"}
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs") / "sac-source"
+    train("sac-source", PENDULUM, steps=60, out=out, seed=3, n_seeds=2, overrides=TINY, eval_episodes=1,
+          progress=False)
+    return out
+
+
+@pytest.fixture
+def agent_module(tmp_path, monkeypatch):
+    """A user's agent package: a zero-torque agent, a broken one and a non-agent."""
+    (tmp_path / "my_agents.py").write_text(textwrap.dedent("""
+        import numpy as np
+
+        class Zero:
+            resets = 0
+            def reset(self):
+                Zero.resets += 1
+            def act(self, observation):
+                return np.zeros(1)
+
+        def make(task, seed):
+            return Zero()
+
+        def make_function():
+            return lambda observation: np.full(1, 0.5)
+
+        def nan_agent():
+            return lambda observation: np.full(1, np.nan)
+
+        def wrong_shape():
+            return lambda observation: np.zeros(3)
+
+        def not_an_agent():
+            return 42
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield "my_agents"
+    sys.modules.pop("my_agents", None)
+
+
+def test_a_run_folder_is_evaluated_per_training_seed(finished_run):
+    record = evaluate(finished_run, progress=False)
+    assert record["task"] == PENDULUM and record["method"] == "sac-source"
+    assert [s["seed"] for s in record["seeds"]] == [3, 4]
+    assert all(len(s["returns"]) == 20 for s in record["seeds"])
+    assert record["episode_seeds"] == list(EPISODE_SEEDS)
+    assert record["protocol_version"] == PROTOCOL_VERSION and record["versions"]["mujoco"] == "3.17.0"
+    # 60 steps is no protocol budget: recorded, and said.
+    assert record["budget"] is None and not record["protocol_conformant"]
+    assert any("not at a protocol budget" in n for n in record["notes"])
+    assert set(record["agent"]["policy_sha256"]) == {"3", "4"}
+    assert read_evaluation(finished_run / "evaluation.json") == json.loads(json.dumps(record))
+    # Deterministic: the same run gives the same returns.
+    assert evaluate(finished_run, progress=False, out=finished_run / "again.json")["seeds"] == record["seeds"]
+
+
+def test_run_agents_match_the_trainers_own_deployed_policy(finished_run):
+    """The evaluator reads the actor out of the checkpoint; the trainer's final evaluation used the
+    same policy on episode seed 1,000,000: replaying that seed must give the same return."""
+    import gymnasium
+
+    from offdyn_bench.evaluate import episode_returns, load_run_agents
+
+    result = json.loads((finished_run / "result.json").read_text())
+    loaded = load_run_agents(finished_run)
+    env = gymnasium.make("offdyn/InvertedPendulum-gravity-3.0-target-v0")
+    for seed, agent in loaded.agents:
+        assert episode_returns(agent, env, [1_000_000], "t") == pytest.approx(result["returns"][str(seed)], rel=1e-5)
+
+
+def test_a_user_agent_from_a_factory(agent_module):
+    record = evaluate(f"{agent_module}:make", PENDULUM, seeds=[0, 1], episodes=3, progress=False, method="zero")
+    assert [s["seed"] for s in record["seeds"]] == [0, 1]
+    assert record["method"] == "zero" and record["agent"]["kind"] == "factory"
+    assert sys.modules[agent_module].Zero.resets == 6  # reset() before every episode
+    plain = evaluate(f"{agent_module}:make_function", PENDULUM, episodes=2, progress=False)
+    assert len(plain["seeds"]) == 1 and len(plain["seeds"][0]["returns"]) == 2
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("no_such_module_xyz:make", "cannot import 'no_such_module_xyz'"),
+    ("{mod}:missing", "has no callable 'missing'"),
+    ("{mod}:not_an_agent", "returned int"),
+    ("{mod}:nan_agent", "NaN or infinite action"),
+    ("{mod}:wrong_shape", r"action of shape \(3,\); expected \(1,\)"),
+    ("just-a-name", "neither a run folder nor 'package.module:factory'"),
+])
+def test_bad_agents_are_clear_errors(agent_module, tmp_path, spec, message):
+    out = tmp_path / "evaluation.json"
+    with pytest.raises(EvaluationError, match=message):
+        evaluate(spec.format(mod=agent_module), PENDULUM, episodes=1, progress=False, out=out)
+    assert not out.exists()
+
+
+def test_bad_run_folders_are_clear_errors(finished_run, tmp_path):
+    with pytest.raises(EvaluationError, match="no config.json: it is not a training run folder"):
+        evaluate(tmp_path, progress=False)
+    unfinished = tmp_path / "unfinished"
+    train("sac-source", PENDULUM, steps=40, out=unfinished, overrides=TINY, eval_episodes=1, progress=False,
+          checkpoint_every=20, stop_after=20)
+    with pytest.raises(EvaluationError, match="has not finished"):
+        evaluate(unfinished, progress=False)
+    with pytest.raises(EvaluationError, match="trained on 'invertedpendulum-gravity-3.0', not"):
+        evaluate(finished_run, "invertedpendulum-kinematic-slider-hard", progress=False)
+    with pytest.raises(ProtocolError, match="the run trained for 60 steps; budget 'lite' is 100000 steps"):
+        evaluate(finished_run, budget="lite", progress=False)
+    with pytest.raises(OffdynError, match="unknown track 'nowhere'; valid names: 'offline-target'"):
+        evaluate(finished_run, track="nowhere", progress=False)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    with pytest.raises(EvaluationError, match="is a file"):
+        evaluate(finished_run, progress=False, out=blocker / "evaluation.json")
+
+
+def test_evaluate_cli(finished_run, tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(app, ["evaluate", "--agent", str(finished_run), "--no-progress",
+                                 "--out", str(tmp_path / "e.json")])
+    assert result.exit_code == 0, result.output
+    assert "seed 3: mean target return" in result.output and "not a protocol result" in result.output
+    bad = runner.invoke(app, ["evaluate", "--agent", str(tmp_path / "nothing"), "--no-progress"])
+    assert bad.exit_code == 2 and bad.output.startswith("error: ") and "Traceback" not in bad.output
+    seeds = runner.invoke(app, ["evaluate", "--agent", "m:f", "--task", PENDULUM, "--seeds", "0,x"])
+    assert seeds.exit_code == 2 and "comma-separated integers" in seeds.output
+
+
+def _record(method, task, per_seed_returns):
+    return {"method": method, "task": task, "budget": None,
+            "seeds": [{"seed": i, "returns": list(r)} for i, r in enumerate(per_seed_returns)]}
+
+
+def test_score_report_by_hand():
+    references = {"a": (0.0, 10.0), "b": (10.0, 110.0)}
+    records = [_record("m1", "a", [[1.0, 3.0], [5.0, 5.0]]),  # seed means 2, 5 -> 20, 50
+               _record("m1", "b", [[60.0], [110.0]]),         # 50, 100
+               _record("m2", "a", [[0.0], [0.0]]),            # 0, 0
+               _record("m2", "b", [[10.0], [10.0]])]          # 0, 0
+    report = score_report(records, references=references)
+    m1 = next(m for m in report.methods if m.method == "m1")
+    np.testing.assert_allclose(m1.normalized, [[20.0, 50.0], [50.0, 100.0]])
+    # IQM of {20, 50, 50, 100}: trim one from each end -> mean(50, 50)
+    assert report.aggregates["m1"]["iqm"].point == pytest.approx(iqm(m1.normalized)) == pytest.approx(50.0)
+    assert report.aggregates["m2"]["optimality_gap"].point == pytest.approx(100.0)
+    assert report.improvement["m1>m2"].point == pytest.approx(1.0)
+    assert score_report(records, references=references).to_dict() == report.to_dict()  # reproducible
+    raw_only = score_report(records, references={"a": (0.0, 10.0)})
+    assert not raw_only.aggregates and "missing for b" in raw_only.note
+    with pytest.raises(ProtocolError, match="methods cover different tasks"):
+        score_report(records[:3], references=references)

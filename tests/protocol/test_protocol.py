@@ -1,0 +1,153 @@
+"""The protocol as data: tracks, budgets, the core suite, reference scores, normalized scores."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from offdyn_bench import protocol
+from offdyn_bench.datasets.manifest import read_manifest
+from offdyn_bench.datasets.recipes import dataset_id
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.protocol import (
+    BUDGETS,
+    CORE_SUITE,
+    EPISODE_SEEDS,
+    EVAL_EPISODES,
+    PROTOCOL_VERSION,
+    TRACKS,
+    ProtocolError,
+    check_method_on_track,
+    normalized_score,
+    official_dataset,
+    record_oracle_reference,
+    reference_scores,
+)
+from offdyn_bench.protocol.references import read_reference_file
+from offdyn_bench.tasks import TASKS
+
+
+def test_tracks_cover_every_reference_implementation():
+    from baselines.cli import ALGORITHM_NAMES
+
+    placed = [m for t in TRACKS.values() for m in t.methods] + list(protocol.REFERENCE_METHODS)
+    assert sorted(placed) == sorted(ALGORITHM_NAMES)
+    assert TRACKS["online-target"].target_step_budget(BUDGETS["lite"].source_steps) == 10_000
+    assert TRACKS["offline-target"].target_step_budget(BUDGETS["full"].source_steps) == 0
+
+
+def test_a_method_is_refused_on_a_track_it_does_not_fit():
+    check_method_on_track("dap", "offline-target")
+    check_method_on_track("sac-source", "online-target")  # a reference point, scored on every track
+    with pytest.raises(ProtocolError, match="darc-online belongs on the 'online-target' track"):
+        check_method_on_track("darc-online", "offline-target")
+    with pytest.raises(OffdynError, match="unknown track 'ofline-target'; closest valid names: 'offline-target'"):
+        check_method_on_track("dap", "ofline-target")
+
+
+def test_evaluation_seeds_are_fixed_and_disjoint_from_training_and_dataset_seeds():
+    from baselines.train import EVAL_SEED
+
+    assert len(EPISODE_SEEDS) == EVAL_EPISODES == 20
+    assert EPISODE_SEEDS == tuple(range(EPISODE_SEEDS[0], EPISODE_SEEDS[0] + 20))
+    assert not set(EPISODE_SEEDS) & set(range(EVAL_SEED, EVAL_SEED + 1000))
+
+
+def test_core_suite_covers_every_locomotion_robot_and_shift_family():
+    pairs = [TASKS[name] for name in CORE_SUITE]
+    assert {p.robot for p in pairs} == {"Ant", "HalfCheetah", "Hopper", "Walker2d"}
+    assert {p.shift for p in pairs} >= {"gravity", "friction", "kinematic", "morph", "joint-noise"}
+    assert all(not p.source_effects for p in pairs)  # nominal sources: the shipped behaviour policies
+
+
+def test_every_core_task_has_both_datasets_with_hashes_in_the_manifest():
+    manifest = read_manifest()
+    for task in CORE_SUITE:
+        for quality in ("source-policy", "random"):
+            ident = dataset_id(task, quality)
+            assert ident in manifest and manifest.get(ident).files, f"{ident} lacks recorded hashes"
+    assert official_dataset("hopper-gravity-0.5", "offline-target") == "offdyn/hopper-gravity-0p5/source-policy-v0"
+    assert official_dataset("hopper-gravity-0.5", "online-target") is None
+
+
+def test_the_shipped_reference_file_has_a_random_reference_for_every_core_task():
+    data = read_reference_file()
+    assert data["protocol_version"] == PROTOCOL_VERSION
+    scores = reference_scores()
+    for task in CORE_SUITE:
+        random = scores[task]["random"]
+        assert len(random.returns) == EVAL_EPISODES
+        assert random.mean_return == pytest.approx(np.mean(random.returns))
+        assert random.provenance["episode_seeds"] == list(EPISODE_SEEDS)
+        assert random.provenance["versions"]["mujoco"] == "3.17.0"
+
+
+def test_random_reference_is_reproducible(tmp_path):
+    path = tmp_path / "refs.json"
+    first = protocol.record_random_reference("invertedpendulum-gravity-3.0", path, episodes=[5, 6])
+    second = protocol.record_random_reference("invertedpendulum-gravity-3.0", path, episodes=[5, 6])
+    assert first.returns == second.returns
+    assert list(reference_scores(path)) == ["invertedpendulum-gravity-3.0"]
+
+
+def _refs(tmp_path, random=10.0, oracle=110.0, budget="lite"):
+    path = tmp_path / "refs.json"
+    path.write_text(json.dumps({
+        "format": "offdyn-bench/reference-scores", "format_version": 1, "protocol_version": PROTOCOL_VERSION,
+        "tasks": {"hopper-gravity-0.5": {
+            "random": {"mean_return": random, "returns": [random], "provenance": {}},
+            "oracle": {budget: {"mean_return": oracle, "returns": [oracle], "provenance": {}}}}}}))
+    return path
+
+
+def test_normalized_score_by_hand(tmp_path):
+    path = _refs(tmp_path)
+    # 100 x (J - 10) / (110 - 10)
+    np.testing.assert_allclose(normalized_score([10.0, 60.0, 110.0, -40.0], "hopper-gravity-0.5", "lite", path),
+                               [0.0, 50.0, 100.0, -50.0])
+    with pytest.raises(ProtocolError, match="no oracle/full reference score"):
+        normalized_score(1.0, "hopper-gravity-0.5", "full", path)
+    with pytest.raises(ProtocolError, match="NaN or infinite"):
+        normalized_score([np.nan], "hopper-gravity-0.5", "lite", path)
+    bad = _refs(tmp_path, random=50.0, oracle=40.0)
+    with pytest.raises(ProtocolError, match="does not exceed the random"):
+        normalized_score(1.0, "hopper-gravity-0.5", "lite", bad)
+
+
+def test_a_damaged_reference_file_is_a_clear_error(tmp_path):
+    path = tmp_path / "refs.json"
+    path.write_text('{"format": "offdyn-bench/reference-scores", "tasks": ')
+    with pytest.raises(ProtocolError, match="cannot be read"):
+        reference_scores(path)
+    path.write_text(json.dumps({"format": "offdyn-bench/reference-scores", "protocol_version": "0.1", "tasks": {}}))
+    with pytest.raises(ProtocolError, match="is for protocol '0.1'"):
+        reference_scores(path)
+
+
+def _evaluation(task="hopper-gravity-0.5", method="sac-target", budget="lite", seed=0, returns=(100.0, 120.0)):
+    return {"format": "offdyn-bench/evaluation", "protocol_version": PROTOCOL_VERSION, "task": task,
+            "budget": budget, "method": method, "agent": {"path": f"runs/{seed}", "policy_sha256": {}},
+            "episode_seeds": [2_000_000, 2_000_001], "seeds": [{"seed": seed, "returns": list(returns)}],
+            "versions": {"mujoco": "3.17.0"}}
+
+
+def test_oracle_reference_from_evaluations(tmp_path):
+    path = tmp_path / "refs.json"
+    score = record_oracle_reference([_evaluation(seed=0), _evaluation(seed=1, returns=(200.0, 220.0))], path)
+    assert score.mean_return == pytest.approx(160.0)
+    stored = reference_scores(path)["hopper-gravity-0.5"]["oracle/lite"]
+    assert stored.provenance["seeds"] == [0, 1] and stored.returns == (100.0, 120.0, 200.0, 220.0)
+    before = path.read_bytes()
+    for evaluations, message in [
+        ([_evaluation(method="dap")], "an oracle reference is sac-target"),
+        ([_evaluation(), _evaluation(task="hopper-friction-0.5", seed=1)], "mix tasks"),
+        ([_evaluation(budget=None)], "not at a protocol budget"),
+        ([_evaluation(), _evaluation()], "a training seed twice"),
+        ([_evaluation(returns=(float("inf"),))], "NaN or infinite"),
+        ([], "no evaluation given"),
+    ]:
+        with pytest.raises(ProtocolError, match=message):
+            record_oracle_reference(evaluations, path)
+        assert path.read_bytes() == before  # a refused oracle changes nothing
