@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import http.server
 import pathlib
+import socket
 import threading
 from collections.abc import Callable, Iterator
 
@@ -89,3 +91,56 @@ def loopback_remote(tmp_path: pathlib.Path) -> Iterator[LoopbackRemote]:
         server.shutdown()
         server.server_close()
         thread.join(timeout=5)
+
+
+@pytest.fixture
+def raw_server() -> Iterator[Callable[[Callable[[socket.socket, bytes], None]], str]]:
+    """Start a loopback TCP server whose every connection is handled by a given function of the
+    socket and the request's bytes (to send garbage, or trickle bytes); returns its http://
+    URL. Connections are closed on exit."""
+    listeners: list[socket.socket] = []
+    stop = threading.Event()
+    threads: list[threading.Thread] = []
+
+    def start(handle: Callable[[socket.socket, bytes], None]) -> str:
+        listener = socket.create_server(("127.0.0.1", 0))
+        listener.settimeout(0.1)
+        listeners.append(listener)
+
+        def serve() -> None:
+            while not stop.is_set():
+                try:
+                    conn, _ = listener.accept()
+                except (TimeoutError, OSError):
+                    continue
+                with conn:
+                    conn.settimeout(5)
+                    with contextlib.suppress(OSError):
+                        handle(conn, conn.recv(65536))
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        threads.append(thread)
+        return f"http://127.0.0.1:{listener.getsockname()[1]}"
+
+    try:
+        yield start
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(timeout=10)
+        for listener in listeners:
+            listener.close()
+
+
+@pytest.fixture
+def nothing_installed(isolated_paths: pathlib.Path) -> Callable[[str], None]:
+    """Asserts that ``dataset_id`` is not installed and no staging is left under the test's root."""
+    from offdyn_bench.datasets.install import STAGING_DIR, is_installed
+
+    def check(dataset_id: str) -> None:
+        assert not is_installed(dataset_id, isolated_paths)
+        assert not (isolated_paths / dataset_id).exists()
+        assert not (isolated_paths / STAGING_DIR).exists() or not any((isolated_paths / STAGING_DIR).iterdir())
+
+    return check
