@@ -218,12 +218,16 @@ def _method_cell(entry: Entry) -> str:
     return f'<td class="text" data-sort="{html.escape(submission.method)}" title="{title}">{label}</td>'
 
 
+def _header_row(headers: Sequence[str], *, text_columns: int) -> str:
+    text = ' class="text"'
+    return "".join(f'<th{text if i < text_columns else ""} scope="col">{html.escape(h)}</th>'
+                   for i, h in enumerate(headers))
+
+
 def _main_table(board: Board) -> str:
     headers = ["method", "track", "budget", "seeds", "IQM [95% CI]", "mean [95% CI]", "optimality gap [95% CI]",
                *board.tasks]
-    text_columns = 3
-    head = "".join(f'<th{" class=\"text\"" if i < text_columns else ""} scope="col">{html.escape(h)}</th>'
-                   for i, h in enumerate(headers))
+    head = _header_row(headers, text_columns=3)
     rows = []
     for entry in board.entries:
         submission = entry.submission
@@ -242,8 +246,7 @@ def _main_table(board: Board) -> str:
 def _breakdown_table(board: Board) -> str:
     """Per method and task: raw mean ± std across seeds, and the normalized mean where it exists."""
     headers = ["method", "track", "budget", *board.tasks]
-    head = "".join(f'<th{" class=\"text\"" if i < 3 else ""} scope="col">{html.escape(h)}</th>'
-                   for i, h in enumerate(headers))
+    head = _header_row(headers, text_columns=3)
     rows = []
     for entry in board.entries:
         submission = entry.submission
