@@ -32,4 +32,5 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_sac.py --rounds 5 --updates-per-round 100 --seed-steps 300 --seeds 5 --seed-rounds 2 --hidden 256 64
 	$(PY) benchmarks/bench_diagnose.py
 	$(PY) benchmarks/bench_datasets.py
+	$(PY) benchmarks/bench_statistics.py
 	$(PY) -m pytest -q -m benchmark --benchmark-enable
