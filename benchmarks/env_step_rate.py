@@ -11,6 +11,7 @@ the vanilla env measured in the same run.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -63,13 +64,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--rounds", type=int, default=40)
-    parser.add_argument("--robots", nargs="*", default=list(ROBOTS))
+    parser.add_argument("--robots", nargs="*", default=list(ROBOTS), choices=ROBOTS)
     args = parser.parse_args()
+    if args.steps < 1 or args.rounds < 1:
+        parser.error(f"--steps and --rounds must be positive, got {args.steps} and {args.rounds}")
+    load_before = os.getloadavg()[0]
     print("| robot | env | steps/s | ratio to vanilla |")
     print("|---|---|---:|---:|")
     for robot in args.robots:
         for label, rate, ratio in measure(robot, args.steps, args.rounds):
             print(f"| {robot} | {label} | {rate:,.0f} | {ratio:.3f} |", flush=True)
+    # Ratios hold up under load better than steps/s, but not fully: say what the machine was doing.
+    print(f"\n{os.cpu_count()} cores; 1-minute load average {load_before:.2f} at the start, "
+          f"{os.getloadavg()[0]:.2f} at the end (this run counts as 1)")
 
 
 if __name__ == "__main__":
