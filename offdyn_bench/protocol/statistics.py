@@ -49,7 +49,9 @@ from offdyn_bench.errors import OffdynError
 
 __all__ = [
     "AGGREGATE_STATISTICS",
+    "BatchedStatistic",
     "Interval",
+    "Statistic",
     "StatisticsError",
     "aggregate",
     "iqm",
@@ -93,8 +95,9 @@ class Interval:
         return self.high - self.low
 
 
+#: A statistic of one score matrix (n_runs, n_tasks).
 Statistic = Callable[[NDArray[np.float64]], float]
-# A statistic evaluated on a stack of score matrices: (batch, n_runs, n_tasks) -> (batch,).
+#: A statistic evaluated on a stack of score matrices: (batch, n_runs, n_tasks) -> (batch,).
 BatchedStatistic = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
 

@@ -292,6 +292,16 @@ def test_method_seed_is_stable() -> None:
     assert 0 <= method_seed(0, "dap") < 2**64
 
 
+def test_inputs_are_left_unchanged() -> None:
+    x, y = normal_scores(5, 3, seed=1), normal_scores(4, 3, seed=2)
+    x_before, y_before = x.copy(), y.copy()
+    aggregate({"x": x, "y": y}, reps=50)
+    probability_of_improvement_ci(x, y, reps=50)
+    performance_profile_ci(x, [10.0, 50.0], reps=50)
+    np.testing.assert_array_equal(x, x_before)
+    np.testing.assert_array_equal(y, y_before)
+
+
 # ---------------------------------------------------------------- bad input
 
 
