@@ -10,28 +10,47 @@ import typer
 from offdyn_bench.errors import OffdynError
 
 
+def _fail(message: str) -> typer.Exit:
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(2)
+
+
 def diagnose_command(
     env: str = typer.Option(..., "--env", help="source env id: any Gymnasium MuJoCo id (Hopper-v5, offdyn/..., your own)"),
     data: str = typer.Option(..., "--data", help="measured data: an .npz file or a Minari dataset id or directory"),
     out: Optional[Path] = typer.Option(None, "--out", help="directory for diagnosis.json, report.md and the plot"),
     json_path: Optional[Path] = typer.Option(None, "--json", help="write the JSON result to this file"),
-    horizon: int = typer.Option(10, help="H of the H-step open-loop error"),
-    max_effects: int = typer.Option(4, help="add at most this many effects"),
+    horizon: int = typer.Option(10, help="H of the H-step open-loop error, in control steps (1 to 1000)"),
+    max_effects: int = typer.Option(4, help="add at most this many effects (0 to 20)"),
     seed: int = typer.Option(0, help="seed of the train/held-out split and the subsets"),
 ) -> None:
     """Find the residual of the source model on measured data, trace it to the missing effect,
     add it, and report the error before and after."""
-    from offdyn_bench.diagnose.loop import DiagnosisSettings, diagnose
+    # Bad settings or an unwritable output fail at once, before the diagnosis spends minutes.
+    from offdyn_bench.diagnose.loop import DiagnosisSettings
+    from offdyn_bench.diagnose.report import unwritable_reason
+
+    try:
+        settings = DiagnosisSettings(horizon=horizon, max_effects=max_effects, seed=seed)
+    except OffdynError as error:
+        raise _fail(str(error)) from None
+    for path, directory, option in ((out, True, "--out"), (json_path, False, "--json")):
+        if path is None:
+            continue
+        try:
+            reason = unwritable_reason(path, directory=directory)
+        except (OSError, ValueError) as error:
+            reason = f"{path}: {error}"
+        if reason is not None:
+            raise _fail(f"{option}: {reason}; nothing was run")
+
+    from offdyn_bench.diagnose.loop import diagnose
     from offdyn_bench.diagnose.report import summary_text, write_json, write_report
 
-    if horizon < 1 or max_effects < 0:
-        typer.echo("error: --horizon must be >= 1 and --max-effects >= 0", err=True)
-        raise typer.Exit(2)
     try:
-        result = diagnose(env, data, DiagnosisSettings(horizon=horizon, max_effects=max_effects, seed=seed))
+        result = diagnose(env, data, settings)
     except OffdynError as error:
-        typer.echo(f"error: {error}", err=True)
-        raise typer.Exit(2) from None
+        raise _fail(str(error)) from None
     typer.echo(summary_text(result))
     try:
         if out is not None:

@@ -9,7 +9,10 @@ observations where the observation determines them.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +42,11 @@ class Transitions:
     recorded_env_id: str | None = None  # the env a Minari dataset says it was recorded with
 
     def __post_init__(self) -> None:
+        for name in ("terminations", "truncations"):
+            object.__setattr__(self, name, _as_flags(getattr(self, name), name))
+        for name in ("observations", "actions", "next_observations", "qpos", "qvel"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _as_numbers(getattr(self, name), name))
         _validate(self)
 
     @property
@@ -102,36 +110,101 @@ def _validate(data: Transitions) -> None:
                                       "remove those transitions (and keep episodes contiguous) before diagnosis")
 
 
+def _as_numbers(array: object, name: str) -> np.ndarray:
+    """A float array of ``array``; text, objects and complex numbers are refused, not converted."""
+    out = np.asarray(array)
+    if out.dtype.kind not in "biuf":
+        raise DiagnosisInputError(f"{name} must hold real numbers, got an array of dtype {out.dtype}")
+    return out.astype(float, copy=False)
+
+
 def _as_float(array: np.ndarray, name: str) -> np.ndarray:
-    try:
-        out = np.asarray(array, dtype=float)
-    except (TypeError, ValueError) as error:
-        raise DiagnosisInputError(f"{name} must be numeric: {error}") from None
+    out = _as_numbers(array, name)
     return out[:, None] if out.ndim == 1 else out
 
 
-def _as_flags(array: np.ndarray) -> np.ndarray:
-    return np.asarray(array).astype(bool).reshape(-1)
+def _as_flags(array: object, name: str) -> np.ndarray:
+    """One boolean per row. 0/1 numbers are booleans; any other value (0.5, NaN) is an error,
+    never silently cast to True."""
+    flags = np.asarray(array)
+    if flags.ndim == 2 and flags.shape[1] == 1:
+        flags = flags[:, 0]
+    if flags.ndim != 1:
+        raise DiagnosisInputError(f"{name} must be a 1-D array with one flag per transition, got shape {flags.shape}")
+    if flags.dtype.kind == "b":
+        return flags
+    if flags.dtype.kind not in "iuf":
+        raise DiagnosisInputError(f"{name} must be booleans (True/False or 0/1), got an array of dtype {flags.dtype}")
+    bad = np.flatnonzero((flags != 0) & (flags != 1))
+    if bad.size:
+        raise DiagnosisInputError(f"{name} must be booleans (True/False or 0/1), got {flags[bad[0]].item()!r} in row "
+                                  f"{bad[0]} ({bad.size} row(s) are neither 0 nor 1)")
+    return flags.astype(bool)
+
+
+# What a broken archive raises while it is read: a truncated or corrupt zip, a bad .npy header,
+# a compressed stream that ends early, a compression method zipfile lacks.
+_ARCHIVE_ERRORS = (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error, NotImplementedError)
+
+
+def _read_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, name: str, path: str) -> np.ndarray:
+    """Read one ``.npy`` member, checking its header against the bytes the archive holds before
+    allocating anything: a corrupt header cannot make numpy allocate what is not there."""
+    with archive.open(info) as stream:
+        version = np.lib.format.read_magic(stream)
+        if version == (1, 0):
+            shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(stream)
+        elif version == (2, 0):
+            shape, fortran_order, dtype = np.lib.format.read_array_header_2_0(stream)
+        else:
+            raise DiagnosisInputError(f"{name} in {path} uses .npy format version {version}; "
+                                      "save the arrays with numpy.savez")
+        if dtype.hasobject:
+            raise DiagnosisInputError(f"{name} in {path} holds Python objects (dtype {dtype}); diagnosis reads "
+                                      "plain numeric or boolean arrays only (objects would need unpickling)")
+        needed = math.prod(shape) * dtype.itemsize
+        available = info.file_size - stream.tell()
+        if needed > available:
+            raise DiagnosisInputError(f"{name} in {path} is cut short: its header declares shape {shape} "
+                                      f"({needed} bytes) but the archive holds {max(available, 0)}; "
+                                      "the file was not fully written")
+        data = bytearray(stream.read(needed))
+    if len(data) != needed:
+        raise DiagnosisInputError(f"{name} in {path} is cut short: {len(data)} of {needed} bytes of array data")
+    array = np.frombuffer(data, dtype=dtype)
+    return array.reshape(shape[::-1]).T if fortran_order else array.reshape(shape)
+
+
+def _read_npz(path: str) -> dict[str, np.ndarray]:
+    """The arrays of the diagnosis contract in an ``.npz`` archive (others are not read)."""
+    if os.path.getsize(path) == 0:
+        raise DiagnosisInputError(f"{path} is empty (0 bytes); expected an .npz archive written by numpy.savez")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            members = {info.filename[:-4]: info for info in archive.infolist() if info.filename.endswith(".npy")}
+            missing = [k for k in NPZ_REQUIRED if k not in members]
+            if missing:
+                raise DiagnosisInputError(f"{path} lacks the array(s) {missing}; an .npz dataset needs "
+                                          f"{list(NPZ_REQUIRED)} and optionally {list(NPZ_OPTIONAL)}")
+            return {name: _read_member(archive, members[name], name, path)
+                    for name in (*NPZ_REQUIRED, *NPZ_OPTIONAL) if name in members}
+    except DiagnosisInputError:
+        raise
+    except _ARCHIVE_ERRORS as error:
+        reason = " ".join(f"{type(error).__name__}: {error}".split())  # one line
+        raise DiagnosisInputError(f"cannot read {path} as an .npz archive ({reason}); expected a complete "
+                                  "file written by numpy.savez") from None
 
 
 def load_npz(path: str | os.PathLike) -> Transitions:
     """Load the plain ``.npz`` format (see the README for the contract)."""
-    try:
-        archive = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as error:
-        raise DiagnosisInputError(f"cannot read {path} as an .npz file: {error}") from None
-    with archive:
-        missing = [k for k in NPZ_REQUIRED if k not in archive.files]
-        if missing:
-            raise DiagnosisInputError(f"{path} lacks the array(s) {missing}; an .npz dataset needs "
-                                      f"{list(NPZ_REQUIRED)} and optionally {list(NPZ_OPTIONAL)}")
-        arrays = {k: archive[k] for k in archive.files}
+    arrays = _read_npz(str(path))
     state = {k: _as_float(arrays[k], k) for k in NPZ_OPTIONAL if k in arrays}
     return Transitions(observations=_as_float(arrays["observations"], "observations"),
                        actions=_as_float(arrays["actions"], "actions"),
                        next_observations=_as_float(arrays["next_observations"], "next_observations"),
-                       terminations=_as_flags(arrays["terminations"]),
-                       truncations=_as_flags(arrays["truncations"]),
+                       terminations=_as_flags(arrays["terminations"], "terminations"),
+                       truncations=_as_flags(arrays["truncations"], "truncations"),
                        qpos=state.get("qpos"), qvel=state.get("qvel"), origin=str(path))
 
 

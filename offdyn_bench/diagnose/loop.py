@@ -22,7 +22,13 @@ from offdyn_bench.diagnose.residual import NUMERICAL_FLOOR, Hypothesis, Residual
 from offdyn_bench.diagnose.search import Fit, fit, screen
 from offdyn_bench.diagnose.source import SourceSimulator
 from offdyn_bench.diagnose.stochastic import action_channel_share, estimate_action_noise
+from offdyn_bench.errors import InvalidParameterError
 from offdyn_bench.versions import versions
+
+# The H-step error needs a window of H steps inside one episode; Gymnasium's MuJoCo tasks end
+# episodes at 1000 steps, so a longer horizon could never be measured.
+MAX_HORIZON = 1000
+MAX_EFFECTS = 20
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,17 +58,36 @@ class DiagnosisSettings:
     fit_rows: int = 1500
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        integers = {"horizon": (1, MAX_HORIZON), "max_effects": (0, MAX_EFFECTS), "fit_top": (1, 100),
+                    "screen_rows": (10, 10**6), "fit_rows": (10, 10**6), "seed": (0, 2**32 - 1)}
+        for name, (low, high) in integers.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise InvalidParameterError("diagnosis settings", name, value, f"an integer in [{low}, {high}]")
+        fractions = {"fit_score_ratio": (0.0, 1.0), "min_relative_gain": (0.0, 1.0), "min_z": (0.0, 100.0),
+                     "floor_tolerance": (0.0, 1.0), "search_margin": (0.0, 10.0), "explained_margin": (0.0, 10.0),
+                     "heldout_fraction": (0.05, 0.95)}
+        for name, (low, high) in fractions.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+                raise InvalidParameterError("diagnosis settings", name, value, f"a number in [{low:g}, {high:g}]")
+
 
 @dataclasses.dataclass(frozen=True)
 class Errors:
+    """Normalized RMSEs of one hypothesis. An H-step error is ``None`` (JSON ``null``: not
+    measured) when no episode of that subset has a window of H steps; never 0.0, which would read
+    as a perfect model."""
+
     one_step_nrmse: float
     heldout_one_step_nrmse: float
-    horizon_nrmse: float
+    horizon_nrmse: float | None
     heldout_per_dimension: tuple[float, ...]
     heldout_trimmed_nrmse: float
-    heldout_horizon_nrmse: float
+    heldout_horizon_nrmse: float | None
 
-    def to_json(self) -> dict[str, float]:
+    def to_json(self) -> dict[str, float | None]:
         return {"one_step_nrmse": self.one_step_nrmse, "heldout_one_step_nrmse": self.heldout_one_step_nrmse,
                 "horizon_nrmse": self.horizon_nrmse, "heldout_horizon_nrmse": self.heldout_horizon_nrmse,
                 "heldout_trimmed_one_step_nrmse": self.heldout_trimmed_nrmse}
@@ -144,11 +169,12 @@ class Diagnosis:
 
 def _errors(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> Errors:
     summary = evaluator.summary(hypothesis)
+    horizon, heldout_horizon = summary.get("horizon"), summary.get("horizon_heldout")
     return Errors(one_step_nrmse=summary["train"].nrmse, heldout_one_step_nrmse=summary["heldout"].nrmse,
-                  horizon_nrmse=summary["horizon"].nrmse,
+                  horizon_nrmse=None if horizon is None else horizon.nrmse,
                   heldout_per_dimension=tuple(float(x) for x in summary["heldout"].per_dimension),
                   heldout_trimmed_nrmse=summary["heldout"].trimmed_nrmse,
-                  heldout_horizon_nrmse=summary["horizon_heldout"].nrmse)
+                  heldout_horizon_nrmse=None if heldout_horizon is None else heldout_horizon.nrmse)
 
 
 def _effect_json(candidate: Candidate, value: float) -> dict[str, Any]:

@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 import json
+import os
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from offdyn_bench.diagnose.loop import Diagnosis
+
+
+def _nrmse(value: float | None) -> str:
+    """An error as the table prints it; ``n/a`` where it was not measured (no H-step window)."""
+    return "n/a" if value is None else f"{value:.4g}"
 
 
 def _value(effect: dict[str, Any]) -> str:
@@ -32,8 +40,8 @@ def steps_table(diagnosis: Diagnosis) -> str:
             f"| {i} | {e['kind']} on {target} | {_value(e)} ({low:.4g}..{high:.4g}){bound} "
             f"| {step.before.one_step_nrmse:.4g} -> {step.after.one_step_nrmse:.4g} "
             f"| {step.before.heldout_one_step_nrmse:.4g} -> {step.after.heldout_one_step_nrmse:.4g} "
-            f"| {step.before.horizon_nrmse:.4g} -> {step.after.horizon_nrmse:.4g} "
-            f"| {step.before.heldout_horizon_nrmse:.4g} -> {step.after.heldout_horizon_nrmse:.4g} |")
+            f"| {_nrmse(step.before.horizon_nrmse)} -> {_nrmse(step.after.horizon_nrmse)} "
+            f"| {_nrmse(step.before.heldout_horizon_nrmse)} -> {_nrmse(step.after.heldout_horizon_nrmse)} |")
     if not diagnosis.steps:
         lines.append("| - | nothing added | | | | | |")
     return "\n".join(lines)
@@ -88,17 +96,53 @@ def plot_residuals(diagnosis: Diagnosis, path: Path) -> None:
     plt.close(fig)
 
 
+def _write_atomically(path: Path, write: Callable[[Path], None]) -> None:
+    """Write through a temporary file in the same folder, then rename: a reader never sees half
+    a file, and a failed write leaves nothing behind."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    os.close(handle)
+    try:
+        write(Path(temporary))
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
 def write_report(diagnosis: Diagnosis, out_dir: str | Path) -> dict[str, Path]:
     """Write ``diagnosis.json``, ``report.md`` and ``residual_per_dimension.png`` into ``out_dir``."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / "diagnosis.json", "report": out / "report.md", "plot": out / "residual_per_dimension.png"}
     write_json(diagnosis, paths["json"])
-    paths["report"].write_text(summary_text(diagnosis) + "\n\n![residual per dimension](residual_per_dimension.png)\n")
-    plot_residuals(diagnosis, paths["plot"])
+    report = summary_text(diagnosis) + "\n\n![residual per dimension](residual_per_dimension.png)\n"
+    _write_atomically(paths["report"], lambda p: p.write_text(report))
+    _write_atomically(paths["plot"], lambda p: plot_residuals(diagnosis, p))
     return paths
 
 
 def write_json(diagnosis: Diagnosis, path: str | Path) -> None:
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(diagnosis.to_json(), indent=2, default=float) + "\n")
+    text = json.dumps(diagnosis.to_json(), indent=2, default=float) + "\n"
+    _write_atomically(Path(path), lambda p: p.write_text(text))
+
+
+def unwritable_reason(path: Path, *, directory: bool) -> str | None:
+    """Why ``path`` (a folder to create or fill, or a file to write) cannot be written, or
+    ``None``. Checked before a diagnosis runs, without creating anything."""
+    if path.exists():
+        if directory and not path.is_dir():
+            return f"{path} exists and is not a folder"
+        if not directory and path.is_dir():
+            return f"{path} is a folder; expected a file path"
+        folder = path if directory else path.parent
+        if not os.access(folder, os.W_OK | os.X_OK) or (not directory and not os.access(path, os.W_OK)):
+            return f"{path} is not writable"
+        return None
+    ancestor = path.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        return f"{path} cannot be created: {ancestor} is not a folder"
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        return f"{path} cannot be created: {ancestor} is not writable"
+    return None

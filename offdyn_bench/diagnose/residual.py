@@ -118,7 +118,7 @@ class ResidualEvaluator:
         }
         self.windows = {name: self._window_starts(rows) for name, rows in (("train", train), ("heldout", heldout))}
         if not any(len(w) for w in self.windows.values()):
-            self.notes.append(f"no episode is {horizon} steps long: the H-step error is not measured (reported as 0)")
+            self.notes.append(f"no episode is {horizon} steps long: the H-step error is not measured (reported as null)")
         change = data.next_observations[:, self.dims] - data.observations[:, self.dims]
         self.spread = _safe_spread(change[usable])
         starts = np.concatenate(list(self.windows.values()))
@@ -305,14 +305,18 @@ class ResidualEvaluator:
         return [(p - recorded) / spread for p in predictions]
 
     def summary(self, hypothesis: Hypothesis) -> dict[str, ErrorSummary]:
-        """One-step error on training and held-out rows, and H-step error on all windows."""
+        """One-step error on training and held-out rows, and H-step error on all windows. The
+        H-step entries are left out where no window of ``horizon`` steps exists: not measured."""
         train, = self.residuals([hypothesis], "train")
         heldout, = self.residuals([hypothesis], "heldout")
         h_train, = self.residuals([hypothesis], "train", self.horizon)
         h_heldout, = self.residuals([hypothesis], "heldout", self.horizon)
-        return {"train": ErrorSummary.of(train), "heldout": ErrorSummary.of(heldout),
-                "horizon": ErrorSummary.of(np.concatenate([h_train, h_heldout])),
-                "horizon_heldout": ErrorSummary.of(h_heldout)}
+        out = {"train": ErrorSummary.of(train), "heldout": ErrorSummary.of(heldout)}
+        if len(h_train) + len(h_heldout):
+            out["horizon"] = ErrorSummary.of(np.concatenate([h_train, h_heldout]))
+        if len(h_heldout):
+            out["horizon_heldout"] = ErrorSummary.of(h_heldout)
+        return out
 
     # --- noise floor ----------------------------------------------------------------------
     def noise_floor(self, hypothesis: Hypothesis) -> tuple[float, np.ndarray]:
