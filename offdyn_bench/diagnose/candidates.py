@@ -16,6 +16,7 @@ import numpy as np
 
 from offdyn_bench.diagnose.source import SourceSimulator
 from offdyn_bench.effects import EFFECT_KINDS, Effect
+from offdyn_bench.effects.base import Interval
 from offdyn_bench.effects.model import actuated_joint_ids, actuator_name, dof_ids
 
 Search = Literal["smooth", "threshold", "integer"]
@@ -134,4 +135,24 @@ def candidate_library(source: SourceSimulator, *, with_observation_delay: bool =
         out.append(Candidate("obs_bias", int(i), 0.0, -1e3, 1e3, 0.01, "smooth"))
         if with_observation_delay:
             out.append(Candidate("obs_delay", int(i), 0, 1, 2, 1, "integer", trials=(1.0,)))
-    return out
+    return [c for c in map(_within_effect_range, out) if c is not None]
+
+
+def _within_effect_range(candidate: Candidate) -> Candidate | None:
+    """The candidate with its bounds inside the plausible range of its effect's value (a model
+    with huge gears would otherwise search damping values no effect accepts); ``None`` when
+    nothing of its search interval is left."""
+    cls = EFFECT_KINDS[candidate.kind]
+    allowed = cls.ranges.get(cls.value_field)
+    if not isinstance(allowed, Interval):
+        return candidate
+    low, high = max(candidate.low, allowed.low), min(candidate.high, allowed.high)
+    if (allowed.low_open and low <= allowed.low) or (allowed.high_open and high >= allowed.high):
+        return None
+    if low > high:
+        return None
+    if (low, high) == (candidate.low, candidate.high):
+        return candidate
+    return dataclasses.replace(candidate, low=low, high=high, nominal=float(np.clip(candidate.nominal, low, high)),
+                               probe=min(candidate.probe, high - low),
+                               trials=tuple(t for t in candidate.trials if low <= t <= high))
