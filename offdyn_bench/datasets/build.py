@@ -100,11 +100,7 @@ def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Poli
                 recipe, {"kind": "uniform-random", "rng_seed": seed})
     path = repo_path(str(behaviour.policy))
     if not path.is_file():
-        raise MissingPolicyError(
-            f"{recipe.dataset_id}: behaviour policy {behaviour.policy} is missing. It is the SAC policy trained "
-            f"in the source dynamics ({dynamics_label(pair, 'source')}), DAP's 'RL on source'. Train it with "
-            f"the SAC baseline, put its .safetensors and .json sidecar at {behaviour.policy}, then run: "
-            f"offdyn-bench datasets build {recipe.dataset_id} --update-manifest")
+        raise _missing_behaviour(recipe, pair)
     try:
         sidecar = read_sidecar(path)
         policy = load_policy(path)
@@ -124,6 +120,37 @@ def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Poli
                   "score": sidecar.get("score"), "action_noise_std": behaviour.action_noise_std,
                   "action_noise_seed": [recipe.seed, 2]}
     return policy, pinned, provenance
+
+
+def _missing_behaviour(recipe: Recipe, pair: TaskPair) -> MissingPolicyError:
+    return MissingPolicyError(
+        f"{recipe.dataset_id}: behaviour policy {recipe.behaviour.policy} is missing. It is the SAC policy trained "
+        f"in the source dynamics ({dynamics_label(pair, 'source')}), DAP's 'RL on source'. Train it with "
+        f"the SAC baseline, put its .safetensors and .json sidecar at {recipe.behaviour.policy}, then run: "
+        f"offdyn-bench datasets build {recipe.dataset_id} --update-manifest")
+
+
+def check_buildable(recipe: Recipe) -> None:
+    """Everything a build of ``recipe`` needs from disk is there: the task's dynamics are the
+    recipe's, and the policy files it names exist with the hashes it pins. Cheap (no env, no
+    step), so a caller can fail before it shows any progress."""
+    pair = recipe.check_task()
+    behaviour = recipe.behaviour
+    if behaviour.kind == "policy":
+        path = repo_path(str(behaviour.policy))
+        if not path.is_file():
+            raise _missing_behaviour(recipe, pair)
+        try:
+            digest = policy_sha256(path)
+        except (OSError, PolicyError) as error:
+            raise MissingPolicyError(f"{recipe.dataset_id}: behaviour policy {behaviour.policy}: {error}") from error
+        if behaviour.policy_sha256 is not None and behaviour.policy_sha256 != digest:
+            raise RecipeError(f"{recipe.dataset_id}: behaviour policy {behaviour.policy} has sha256 {digest}, the "
+                              f"recipe pins {behaviour.policy_sha256}; a new policy is a new dataset version")
+    if recipe.oracle_policy is not None and recipe.oracle_policy_sha256 is not None \
+            and not repo_path(recipe.oracle_policy).is_file():
+        raise MissingPolicyError(f"{recipe.dataset_id}: the recipe pins oracle {recipe.oracle_policy} "
+                                 f"(sha256 {recipe.oracle_policy_sha256}) but the file is missing")
 
 
 def _oracle(recipe: Recipe, fresh: bool) -> tuple[pathlib.Path | None, Recipe]:

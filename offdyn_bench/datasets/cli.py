@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import pathlib
 from collections.abc import Iterator
 from typing import Annotated, Optional
@@ -10,9 +11,11 @@ from typing import Annotated, Optional
 import typer
 from tqdm import tqdm
 
-from offdyn_bench.datasets.build import MissingPolicyError, build_dataset, record_in_manifest, repo_path
-from offdyn_bench.datasets.download import download_dataset
+from offdyn_bench.datasets.build import MissingPolicyError, build_dataset, check_buildable, record_in_manifest, repo_path
+from offdyn_bench.datasets.ensure import ensure_dataset
 from offdyn_bench.datasets.install import datasets_root, is_installed, verify_installed
+from offdyn_bench.datasets.staging import clean_stale_staging
+from offdyn_bench.datasets.transfer import TransferLimits
 from offdyn_bench.datasets.manifest import MANIFEST_PATH, Manifest, read_manifest
 from offdyn_bench.datasets.recipes import QUALITIES, dataset_id
 from offdyn_bench.errors import OffdynError
@@ -31,7 +34,7 @@ def _errors_exit() -> Iterator[None]:
         yield
     except OffdynError as error:
         typer.echo(f"error: {error}", err=True)
-        raise typer.Exit(1) from None
+        raise typer.Exit(2) from None
 
 
 def _behaviour_status(entry_recipe) -> str:  # noqa: ANN001 - a Recipe
@@ -45,18 +48,24 @@ def list_command(
     buildable: Annotated[bool, typer.Option(help="Also list every id of the task grid that builds on demand.")] = False,
     manifest_path: ManifestOption = None,
 ) -> None:
-    """Dataset ids of the manifest: size, whether hashes are recorded, installed, behaviour."""
+    """Dataset ids of the manifest: transitions, archive size, hashes recorded?, installed?, behaviour.
+    Reads only: creates no folder (not even the datasets root)."""
     with _errors_exit():
         manifest = read_manifest(manifest_path)
         ids = sorted(manifest.entries)
         if buildable:
             ids += sorted({dataset_id(name, q) for name in TASKS for q in QUALITIES} - set(ids))
         root = datasets_root()
+        clean_stale_staging(root)  # so a replace killed midway shows as installed again
         width = max([len("dataset id"), *map(len, ids)])
-        typer.echo(f"{'dataset id':{width}} {'transitions':>11}  {'hashes':6}  {'installed':9}  behaviour")
+        typer.echo(f"{'dataset id':{width}} {'transitions':>11}  {'archive MB':>10}  {'hashes':6}  {'installed':9}  "
+                   "behaviour")
         for ident in ids:
             entry = manifest.entry_or_default(ident)
-            typer.echo(f"{ident:{width}} {entry.recipe.num_transitions:>11}  {'yes' if entry.is_built else 'no':6}  "
+            # What the data holds once built; the recipe's target before.
+            steps = entry.total_steps if entry.total_steps is not None else entry.recipe.num_transitions
+            archive = f"{entry.archive.size / 1e6:.1f}" if entry.archive is not None else "-"
+            typer.echo(f"{ident:{width}} {steps:>11}  {archive:>10}  {'yes' if entry.is_built else 'no':6}  "
                        f"{'yes' if is_installed(ident, root) else 'no':9}  {_behaviour_status(entry.recipe)}")
         typer.echo(f"{len(ids)} datasets; installed under {root}; manifest {manifest_path or MANIFEST_PATH}")
 
@@ -87,6 +96,7 @@ def build_command(
             # A rebuild with --update-manifest may change the bytes on purpose (e.g. a new policy).
             recorded = None if update_manifest else entry
             try:
+                check_buildable(entry.recipe)  # before the bar: no empty bar above the error
                 with tqdm(total=entry.recipe.num_transitions, desc=ident, unit="step") as bar:
                     result = build_dataset(entry.recipe, out_dir=out, recorded=recorded, install=install,
                                            replace=force, on_progress=bar.update)
@@ -117,7 +127,9 @@ def verify_command(ident: Annotated[str, typer.Argument(metavar="ID")], manifest
         if not report.ok:
             for problem in report.problems:
                 typer.echo(f"{ident}: {problem}", err=True)
-            typer.echo(f"{ident}: FAILED verification ({len(report.problems)} problems) at {report.path}", err=True)
+            typer.echo(f"{ident}: FAILED verification ({len(report.problems)} problems) at {report.path}; to "
+                       f"replace it with a verified copy, run: offdyn-bench datasets download {ident} --force",
+                       err=True)
             raise typer.Exit(1)
         typer.echo(f"{ident}: OK ({len(manifest.get(ident).files or {})} files verified) at {report.path}")
 
@@ -126,21 +138,25 @@ def verify_command(ident: Annotated[str, typer.Argument(metavar="ID")], manifest
 def download_command(
     ident: Annotated[str, typer.Argument(metavar="ID")],
     remote: Annotated[Optional[str], typer.Option(
-        help="Remote URL (https://, http://, file://); default $OFFDYN_REMOTE.")] = None,
+        help="Remote URL (https://, http://, file://); default $OFFDYN_REMOTE. With neither, the dataset is "
+             "rebuilt from its recipe.")] = None,
     force: Annotated[bool, typer.Option(help="Replace an installed copy.")] = False,
+    deadline: Annotated[Optional[float], typer.Option(
+        help="Longest time one remote file may take, in seconds (default $OFFDYN_DOWNLOAD_DEADLINE or 3600).")] = None,
+    min_rate: Annotated[Optional[float], typer.Option(
+        help="Slowest accepted transfer, bytes/s averaged over 30 s (default $OFFDYN_DOWNLOAD_MIN_RATE or 1024; "
+             "0 turns it off).")] = None,
     manifest_path: ManifestOption = None,
 ) -> None:
-    """Download an archive and its manifest entry, verify every sha256, install atomically."""
+    """Install a dataset and verify every sha256: from the remote when one is configured,
+    otherwise rebuilt from its recipe. Says which it did."""
     with _errors_exit():
         manifest: Manifest = read_manifest(manifest_path)
-        with tqdm(total=0, desc=ident, unit="B", unit_scale=True) as bar:
-            def set_total(total: int) -> None:
-                bar.total = total
-                bar.refresh()
-
-            path = download_dataset(ident, remote=remote, manifest=manifest, force=force, on_bytes=bar.update,
-                                    on_total=set_total, say=lambda message: bar.write(message))
-        typer.echo(f"{ident}: installed and verified at {path}")
+        limits = TransferLimits.from_environment()
+        overrides = {"deadline_s": deadline, "min_rate_bytes_per_s": min_rate}
+        limits = dataclasses.replace(limits, **{k: v for k, v in overrides.items() if v is not None})
+        ensure_dataset(ident, remote=remote, manifest=manifest, force=force, limits=limits,
+                       echo=typer.echo, progress=True)
 
 
 def _checkpoint_state_file(path: pathlib.Path) -> tuple[pathlib.Path, pathlib.Path | None]:
