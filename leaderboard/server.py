@@ -13,6 +13,7 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
+from sqlalchemy.exc import SQLAlchemyError
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
@@ -153,6 +154,10 @@ def create_app(*, db_url: str, store: Path, references: Path | None = None,
             return _error(409, str(error))
         except SubmissionError as error:
             return _error(422, str(error))
+        except (OSError, SQLAlchemyError) as error:
+            # add_submission has undone its half: neither the row nor the file exists.
+            return _error(500, f"could not record the submission ({type(error).__name__}: {error}); nothing "
+                               "was stored, try again later")
         return JSONResponse({"method": submission.method, "track": submission.track, "budget": submission.budget,
                              "file": path.name}, status_code=201)
 
