@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from baselines.cli import train_command
+from leaderboard.cli import leaderboard_app
 from offdyn_bench.datasets.cli import datasets_app
 from offdyn_bench.diagnose.command import diagnose_command
 from offdyn_bench.task_commands import tasks_app
@@ -18,6 +19,7 @@ app.add_typer(tasks_app, name="tasks")
 app.add_typer(datasets_app, name="datasets")
 app.command("train")(train_command)
 app.command("diagnose")(diagnose_command)
+app.add_typer(leaderboard_app, name="leaderboard")
 
 
 @app.command("demo")
