@@ -19,7 +19,8 @@ ALGORITHM_NAMES = ("sac-source", "sac-target", "cql", "darc", "darc-online", "h2
 def train_command(
     algo: str = typer.Argument(..., help="Algorithm: " + ", ".join(ALGORITHM_NAMES) + "."),
     task: str = typer.Option(..., "--task", help="Task pair, e.g. hopper-gravity-0.5."),
-    steps: int = typer.Option(..., "--steps", help="Environment steps (gradient updates for offline cql)."),
+    steps: int | None = typer.Option(None, "--steps", help="Environment steps (gradient updates for offline cql); "
+                                                           "or pass --budget."),
     out: Path = typer.Option(..., "--out", help="Run folder; run the same command again to resume it."),
     seed: int = typer.Option(0, "--seed", help="First training seed."),
     n_seeds: int = typer.Option(1, "--n-seeds", help="Seeds seed..seed+n-1, trained together in one process."),
@@ -34,6 +35,10 @@ def train_command(
     checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Default steps/10."),
     threads: int = typer.Option(1, "--threads", help="torch threads (1: best on a small shared CPU)."),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
+    track: str | None = typer.Option(None, "--track", help="Protocol track, offline-target or online-target "
+                                                           "(default: the method's own); checked against the method."),
+    budget: str | None = typer.Option(None, "--budget", help="Protocol budget: lite (100k steps) or full (1M); "
+                                                             "sets --steps."),
 ) -> None:
     """Train a reference baseline and write config.json, metrics.jsonl, result.json and checkpoints."""
     from baselines.train import train
@@ -48,7 +53,8 @@ def train_command(
     try:
         result = train(algo, task, steps=steps, out=out, seed=seed, n_seeds=n_seeds, dataset=dataset,
                        overrides=parsed, eval_every=eval_every, eval_episodes=eval_episodes,
-                       checkpoint_every=checkpoint_every, threads=threads, progress=progress)
+                       checkpoint_every=checkpoint_every, threads=threads, progress=progress, track=track,
+                       budget=budget)
     except OffdynError as error:
         typer.echo(f"error: {error}", err=True)
         raise typer.Exit(2) from None

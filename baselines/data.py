@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import struct
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -100,8 +101,15 @@ class TransitionDataset:
             raise
         except EOFError:
             raise OffdynError(f"dataset {str(path)!r} is empty; {expected}") from None
-        except (zipfile.BadZipFile, zlib.error) as error:
-            raise OffdynError(f"dataset {str(path)!r} is damaged or truncated ({error}); {expected}") from None
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, NotImplementedError, RuntimeError,
+                struct.error) as error:
+            # zipfile answers damaged flag or method fields with NotImplementedError ("unsupported
+            # compression") and RuntimeError ("encrypted, password required").
+            raise OffdynError(f"dataset {str(path)!r} is damaged or truncated ({_one_line(error)}); "
+                              f"{expected}") from None
+        except MemoryError:
+            raise OffdynError(f"dataset {str(path)!r} declares arrays too large to load (a damaged header?); "
+                              f"{expected}") from None
         except ValueError as error:
             if "allow_pickle" in str(error):
                 raise OffdynError(f"dataset {str(path)!r} holds a Python object array, which is not loaded "

@@ -50,6 +50,8 @@ from baselines.networks import mlp
 from baselines.run_folder import (CONFIG_FILE, METRICS_FILE, RESULT_FILE, check_writable, holds_files, read_config,
                                   read_metrics, run_folder_lock, write_json_atomic, write_lines_atomic)
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.protocol.definition import ProtocolError
+from offdyn_bench.protocol.training import resolve_run
 from offdyn_bench.tasks import TaskPair, get_task
 from offdyn_bench.versions import versions
 
@@ -59,30 +61,39 @@ DATASET_SEED = 0
 """Seed of datasets collected on the spot (fixed so every training seed sees the same data)."""
 
 
-def train(algo: str, task: str, *, steps: int, out: str | Path, seed: int = 0, n_seeds: int = 1,
+def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, seed: int = 0, n_seeds: int = 1,
           dataset: str | None = None, overrides: Mapping[str, str] | None = None,
           eval_every: int | None = None, eval_episodes: int = 10, checkpoint_every: int | None = None,
-          threads: int | None = 1, progress: bool = True, stop_after: int | None = None) -> dict[str, Any] | None:
+          threads: int | None = 1, progress: bool = True, stop_after: int | None = None,
+          track: str | None = None, budget: str | None = None) -> dict[str, Any] | None:
     """Train ``algo`` on ``task`` for ``steps`` steps with seeds ``seed .. seed + n_seeds - 1``.
 
     ``steps`` counts interaction-environment steps (gradient updates for offline CQL).
     ``eval_every`` defaults to steps/20, ``checkpoint_every`` to steps/10. ``stop_after`` stops the
     run after that many steps without finishing it, as a kill would (for tests). Returns the
     result, or None when stopped early.
+
+    ``budget`` (``lite``/``full``) sets ``steps`` from the protocol; ``track`` is checked against
+    the method (default: the method's own track). A method that needs a target dataset and gets
+    none trains on the task's official dataset, installed and verified first.
     """
     method_spec = get_algorithm(algo)
     pair = get_task(task)
-    _check_arguments(steps=steps, n_seeds=n_seeds, eval_episodes=eval_episodes, eval_every=eval_every,
-                     checkpoint_every=checkpoint_every, threads=threads)
+    if steps is not None:
+        _check_arguments(steps=steps, n_seeds=n_seeds, eval_episodes=eval_episodes, eval_every=eval_every,
+                         checkpoint_every=checkpoint_every, threads=threads)
     config = apply_overrides(method_spec.default_config(), dict(overrides or {}), algo)
     # DARC with target_data=online (the darc-online entry, or --set target_data=online) takes its
     # target transitions from the environment instead of a dataset.
     needs_dataset = method_spec.needs_dataset and getattr(config, "target_data", "offline") != "online"
-    if needs_dataset and dataset is None:
-        raise OffdynError(f"{algo} needs a target dataset: pass --dataset, e.g. collect:random:5000, "
-                          "collect:<sac-source run folder>:5000 or a path to an .npz")
     if not needs_dataset and dataset is not None:
         raise OffdynError(f"{algo} does not use a target dataset; drop --dataset")
+    plan = resolve_run(algo, pair.name, steps=steps, track=track, budget=budget, dataset=dataset,
+                       needs_dataset=needs_dataset, target_step_every=_target_step_every(method_spec, config),
+                       progress=progress, echo=lambda line: print(line, file=sys.stderr))
+    steps, dataset = plan.steps, plan.dataset
+    _check_arguments(steps=steps, n_seeds=n_seeds, eval_episodes=eval_episodes, eval_every=eval_every,
+                     checkpoint_every=checkpoint_every, threads=threads)
     eval_every = eval_every or max(1, steps // 20)
     checkpoint_every = checkpoint_every or max(1, steps // 10)
     seeds = tuple(range(seed, seed + n_seeds))
@@ -119,8 +130,9 @@ def train(algo: str, task: str, *, steps: int, out: str | Path, seed: int = 0, n
                               "started a run there); nothing was written")
         if not resuming:
             write_json_atomic(out / CONFIG_FILE, settings | {"task_spec": pair.to_dict(),
-                                                             "dataset_provenance": dataset_provenance})
-        loop = _Loop(method, pair, seeds, out)
+                                                             "dataset_provenance": dataset_provenance,
+                                                             "track": plan.track, "budget": plan.budget})
+        loop = _Loop(method, pair, seeds, out, plan.target_step_limit)
         start, notes = loop.restore() if resuming else (0, [])
         for message in warnings:
             print(f"warning: {message}", file=sys.stderr)
@@ -134,7 +146,8 @@ def train(algo: str, task: str, *, steps: int, out: str | Path, seed: int = 0, n
                   "seeds": list(seeds), "eval_episode_seeds": [EVAL_SEED + e for e in range(eval_episodes)],
                   "returns": {str(s): [float(x) for x in final_returns[i]] for i, s in enumerate(seeds)},
                   "mean_return": float(final_returns.mean()), "versions": versions(),
-                  "config": settings["config"], "warnings": warnings}
+                  "config": settings["config"], "warnings": warnings, "track": plan.track, "budget": plan.budget,
+                  "target_steps_per_seed": loop.target_steps_taken(steps)}
         write_json_atomic(out / RESULT_FILE, result)
     return result
 
@@ -188,6 +201,13 @@ def budget_warnings(algo: str, config: Any, steps: int) -> list[str]:
                 f"reward correction and trains plain SAC; the minimum useful budget is more than {warmup_steps} "
                 "steps (or lower it with --set warmup_steps=N)"]
     return []
+
+
+def _target_step_every(method_spec: Any, config: Any) -> int | None:
+    """Target-environment steps of an online-target method: one per this many steps (else None)."""
+    if getattr(config, "target_data", None) == "online":
+        return int(config.target_step_every)
+    return None
 
 
 def _check_out_dir(out: Path, settings: dict[str, Any]) -> bool:
@@ -266,8 +286,10 @@ class _Envs:
 
 
 class _Loop:
-    def __init__(self, method: Method, pair: TaskPair, seeds: Sequence[int], out: Path) -> None:
+    def __init__(self, method: Method, pair: TaskPair, seeds: Sequence[int], out: Path,
+                 target_step_limit: int | None = None) -> None:
         self.method, self.out, self.seeds = method, out, seeds
+        self.target_step_limit = target_step_limit
         self.train_envs = _Envs(pair, method.interaction, seeds, 1) if method.interaction != "none" else None
         self.target_envs = _Envs(pair, "target", seeds, 2) if method.target_step_every else None
         self.eval_envs = [pair.make("target") for _ in seeds]
@@ -284,11 +306,20 @@ class _Loop:
             obs, rewards, next_obs, terminations = self.train_envs.step(env_actions)
             method.record(obs, stored, rewards, next_obs, terminations)
         if self.target_envs is not None and (step + 1) % method.target_step_every == 0:
+            if self.target_step_limit is not None and self.target_steps_taken(step + 1) > self.target_step_limit:
+                raise ProtocolError(f"target step {self.target_steps_taken(step + 1)} exceeds the track's budget "
+                                    f"of {self.target_step_limit} target steps per seed")
             env_actions, stored = method.explore(torch.as_tensor(self.target_envs.observations, dtype=torch.float32),
                                                  step)
             obs, rewards, next_obs, terminations = self.target_envs.step(env_actions)
             method.record_target(obs, stored, rewards, next_obs, terminations)
         return method.train_step(step)
+
+    def target_steps_taken(self, steps: int) -> int:
+        """Target-environment steps per seed after ``steps`` steps (the loop is the only place that
+        steps the target during training, once every ``target_step_every`` steps)."""
+        every = self.method.target_step_every
+        return steps // every if every else 0
 
     def evaluate(self, episodes: int) -> np.ndarray:
         """Per-seed, per-episode target returns of the deployed policy, ``[seeds, episodes]``."""
