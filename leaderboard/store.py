@@ -62,6 +62,8 @@ def write_file_atomic(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        # mkstemp creates the file private (0600); a store or site file is for everyone to read.
+        os.chmod(temporary, 0o644)
         with os.fdopen(handle, "wb") as file:
             file.write(data)
             file.flush()
