@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import collections
 import json
+import re
 
 import typer
 
 from offdyn_bench.effects.model import ModelEffect
-from offdyn_bench.errors import OffdynError
+from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.model_diff import model_differences
 from offdyn_bench.robots import get_robot
 from offdyn_bench.tasks import SIDES, TASKS, TaskPair, get_task
@@ -29,6 +30,12 @@ def grid_summary() -> str:
         lines.append(robot.ljust(width) + "  ".join(cells))
     lines.append(f"{len(TASKS)} pairs, {2 * len(TASKS)} registered Gymnasium ids")
     return "\n".join(lines)
+
+
+def plain_text(docstring_line: str) -> str:
+    """A docstring line as a terminal shows it: without reST markup (````x````, ``:class:`X```)."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", docstring_line)
+    return text.replace("``", "")
 
 
 def describe_pair(pair: TaskPair) -> str:
@@ -55,7 +62,7 @@ def describe_pair(pair: TaskPair) -> str:
             lines += ["    " + line for d in model_differences(base, compiled) for line in d.describe().splitlines()]
         if channel_effects:
             lines.append("  channel (between agent and physics; the compiled model is the base model):")
-            lines += [f"    - {type(e).__doc__.strip().splitlines()[0]}" for e in channel_effects]
+            lines += [f"    - {plain_text((type(e).__doc__ or e.kind).strip().splitlines()[0])}" for e in channel_effects]
     return "\n".join(line for line in lines if line != "")
 
 
@@ -66,12 +73,25 @@ def list_tasks(
     as_json: bool = typer.Option(False, "--json", help="print the full definitions as JSON"),
 ) -> None:
     """List the task pairs (name, source id, target id)."""
+    robots = {p.robot.lower(): p.robot for p in TASKS.values()}
+    shifts = {p.shift for p in TASKS.values()}
+    try:
+        if robot is not None and robot.lower() not in robots:
+            raise UnknownNameError("robot", robot, robots.values())
+        if shift is not None and shift not in shifts:
+            raise UnknownNameError("shift family", shift, shifts)
+    except OffdynError as error:
+        typer.echo(f"error: {error}", err=True)
+        raise typer.Exit(2) from None
     pairs = [p for p in TASKS.values()
              if (robot is None or p.robot.lower() == robot.lower()) and (shift is None or p.shift == shift)]
-    if robot is not None and not pairs and robot.lower() not in {p.robot.lower() for p in TASKS.values()}:
-        get_robot(robot)  # raises with the closest robot names
     if as_json:
         typer.echo(json.dumps([p.to_dict() for p in pairs], indent=2))
+        return
+    if not pairs:
+        families = sorted({p.shift for p in TASKS.values() if p.robot.lower() == str(robot).lower()})
+        typer.echo(f"no pair of {robots[str(robot).lower()]} has the shift {shift!r}; its shift families: "
+                   + ", ".join(families), err=True)
         return
     if robot is None and shift is None:
         typer.echo(grid_summary() + "\n")

@@ -64,3 +64,40 @@ def test_demo_with_training_scores_darc_above_rl_on_source(tmp_path):
     rows = {line.split()[0]: float(line.split()[1]) for line in result.output.splitlines()
             if line.strip().split()[:1] in (["random"], ["sac-source"], ["darc"])}
     assert rows["darc"] > rows["sac-source"] > rows["random"]
+
+
+@pytest.mark.parametrize(("option", "value", "message"), [
+    ("--robot", "hoppr", "error: unknown robot 'hoppr'; closest valid names: 'Hopper'"),
+    ("--shift", "gravty", "error: unknown shift family 'gravty'; closest valid names: 'gravity'"),
+])
+def test_tasks_list_unknown_filter_is_an_error_with_the_closest_names(option, value, message):
+    result = runner.invoke(app, ["tasks", "list", option, value])
+    assert result.exit_code == 2
+    assert result.output.strip() == message or result.output.startswith(message), result.output
+    assert "Traceback" not in result.output and len(result.output.strip().splitlines()) == 1
+
+
+def test_tasks_list_filters_ignore_the_robots_case_and_say_when_nothing_matches():
+    pendulum = runner.invoke(app, ["tasks", "list", "--robot", "invertedpendulum"])
+    assert pendulum.exit_code == 0
+    assert [line.split()[0] for line in pendulum.output.splitlines()] == [
+        "invertedpendulum-kinematic-slider-hard", "invertedpendulum-gravity-3.0"]
+    nothing = runner.invoke(app, ["tasks", "list", "--robot", "InvertedPendulum", "--shift", "friction"])
+    assert nothing.exit_code == 0
+    assert "no pair of InvertedPendulum has the shift 'friction'; its shift families: gravity, kinematic" in nothing.output
+
+
+def test_tasks_show_prints_plain_text_without_rst_markup():
+    result = runner.invoke(app, ["tasks", "show", "hopper-joint-noise-0.5"])
+    assert result.exit_code == 0, result.output
+    assert "- Add Gaussian noise N(0, std^2) to the command" in result.output
+    assert "`" not in result.output
+
+
+def test_plain_text_strips_every_effect_docstrings_markup():
+    from offdyn_bench.effects import EFFECT_KINDS
+    from offdyn_bench.task_commands import plain_text
+
+    assert plain_text("Clip to ``[-limit, limit]``, see :class:`ChannelEffects`.") == "Clip to [-limit, limit], see ChannelEffects."
+    for cls in EFFECT_KINDS.values():
+        assert "`" not in plain_text(cls.__doc__.strip().splitlines()[0])
