@@ -251,7 +251,7 @@ def _conformance(loaded: LoadedAgents, task: str, track: str | None, budget: str
         notes.append(f"{episodes} episodes per seed; the protocol evaluates {EVAL_EPISODES}")
     if track is not None and loaded.dataset is not None:
         official = official_dataset(task, track)
-        used = loaded.dataset.get("id") or loaded.dataset.get("spec")
+        used = loaded.dataset.get("dataset_id") or loaded.dataset.get("spec")
         if official is not None and used != official:
             notes.append(f"trained on dataset {used!r}; the track's official dataset is {official!r}")
     return track, budget, notes

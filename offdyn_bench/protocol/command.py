@@ -37,6 +37,22 @@ def _parse_seeds(text: str | None) -> list[int] | None:
     return seeds
 
 
+def _parse_references(items: list[str]) -> dict[str, tuple[float, float]]:
+    out = {}
+    for item in items:
+        task, sep, values = item.partition("=")
+        parts = values.split(",")
+        try:
+            j_random, j_oracle = (float(parts[0]), float(parts[1])) if sep and len(parts) == 2 else (None, None)
+        except ValueError:
+            j_random = j_oracle = None
+        if j_random is None or j_oracle is None or not j_oracle > j_random:
+            raise OffdynError(f"--reference {item!r}: expected TASK=J_RANDOM,J_ORACLE with J_ORACLE > J_RANDOM, "
+                              "e.g. hopper-gravity-0.5=18.4,2500")
+        out[task] = (j_random, j_oracle)
+    return out
+
+
 def evaluate_command(
     agent: str = typer.Option(..., "--agent", help="A run folder of `offdyn-bench train`, or package.module:factory "
                                                    "returning an object with act(observation) -> action."),
@@ -148,6 +164,9 @@ def reference_oracle(evaluations: list[Path] = typer.Argument(..., help="evaluat
 def score(evaluations: list[Path] = typer.Argument(..., help="evaluation.json files (any methods and tasks)."),
           budget: str | None = typer.Option(None, "--budget", help="Normalize against this budget's oracle "
                                                                    "(default: the evaluations' budget)."),
+          reference: list[str] = typer.Option([], "--reference", help="TASK=J_RANDOM,J_ORACLE: normalize TASK "
+                                                                        "against these returns instead of the "
+                                                                        "reference file (repeatable)."),
           as_json: bool = typer.Option(False, "--json")) -> None:
     """Score evaluations: per-task raw returns, normalized scores, IQM with a 95% stratified-bootstrap
     interval, optimality gap, and the probability of improvement between methods."""
@@ -156,7 +175,7 @@ def score(evaluations: list[Path] = typer.Argument(..., help="evaluation.json fi
 
     try:
         records = [read_evaluation(path) for path in evaluations]
-        report = score_report(records, budget)
+        report = score_report(records, budget, _parse_references(reference) if reference else None)
     except OffdynError as error:
         raise _fail(error) from None
     typer.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.to_text())

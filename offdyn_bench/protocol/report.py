@@ -57,6 +57,9 @@ class ScoreReport:
                 lines.append(f"  {method}: IQM {iqm.point:.1f} [{iqm.low:.1f}, {iqm.high:.1f}], optimality gap "
                              f"{gap.point:.1f} [{gap.low:.1f}, {gap.high:.1f}]")
             for pair, interval in self.improvement.items():
+                first, second = pair.split(">")
+                if first > second:  # P(B > A) = 1 - P(A > B): print each pair once
+                    continue
                 lines.append(f"  P({pair.replace('>', ' > ')}) = {interval.point:.2f} "
                              f"[{interval.low:.2f}, {interval.high:.2f}]")
         lines.append(self.note)

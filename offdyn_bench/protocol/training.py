@@ -1,0 +1,79 @@
+"""What the protocol decides before a training run starts: its budget, its track, its dataset.
+
+``offdyn-bench train`` calls :func:`resolve_run` first, so a run that breaks the protocol is
+refused before anything is written, and a run that names a track or a budget gets the official
+dataset and step count without having to spell them out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.protocol.definition import (
+    TRACKS,
+    ProtocolError,
+    check_method_on_track,
+    get_budget,
+    get_track,
+    official_dataset,
+    track_of_method,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunPlan:
+    steps: int
+    dataset: str | None
+    track: str | None
+    budget: str | None
+    target_step_limit: int | None
+    """Target-environment steps per training seed the track allows (None: not limited)."""
+
+
+def resolve_run(algo: str, task: str, *, steps: int | None, track: str | None, budget: str | None,
+                dataset: str | None, needs_dataset: bool, target_step_every: int | None,
+                progress: bool = True, echo: Callable[[str], None] = print) -> RunPlan:
+    """Steps from the budget, the method checked against the track, and, for a method that needs
+    a target dataset and got none, the task's official dataset installed and verified."""
+    if budget is not None:
+        budget_steps = get_budget(budget).source_steps
+        if steps is not None and steps != budget_steps:
+            raise ProtocolError(f"--steps {steps} contradicts --budget {budget} ({budget_steps} steps); "
+                                "pass one of them")
+        steps = budget_steps
+    if steps is None:
+        raise OffdynError("pass --steps N or --budget lite|full")
+    if track is not None:
+        check_method_on_track(algo, track)
+    else:
+        track = track_of_method(algo) if algo in {m for t in TRACKS.values() for m in t.methods} else None
+    limit = None
+    if track is not None and algo in get_track(track).methods:
+        if get_track(track).target_data == "online":
+            limit = get_track(track).target_step_budget(steps)
+            taken = steps // target_step_every if target_step_every else 0
+            if taken > limit:
+                raise ProtocolError(f"{algo} would take {taken} target steps per seed; the {track} track allows "
+                                    f"{limit} (one per {round(1 / get_track(track).target_steps_per_source_step)} "
+                                    "source steps)")
+        else:
+            limit = 0
+            if target_step_every:
+                raise ProtocolError(f"{algo} steps the target environment; the {track} track allows no target "
+                                    "interaction")
+    if needs_dataset and dataset is None:
+        official = official_dataset(task, track or "offline-target")
+        if official is None:
+            raise OffdynError(f"{algo} needs a target dataset and track {track!r} has no official one: pass --dataset")
+        from offdyn_bench.datasets import read_manifest
+        from offdyn_bench.datasets.ensure import ensure_dataset
+
+        if official not in read_manifest():
+            raise OffdynError(f"{algo} needs a target dataset and {task} has no official one ({official} is not in "
+                              "the manifest): pass --dataset, e.g. collect:<sac-source run folder>:20000")
+        echo(f"using the official {track or 'offline-target'} dataset of {task}: {official}")
+        ensure_dataset(official, progress=progress, echo=echo)
+        dataset = official
+    return RunPlan(steps=steps, dataset=dataset, track=track, budget=budget, target_step_limit=limit)
