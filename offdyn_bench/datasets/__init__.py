@@ -12,7 +12,6 @@ from offdyn_bench.datasets.download import REMOTE_ENV, DownloadError, download_d
 from offdyn_bench.datasets.ensure import DatasetUnavailableError, ensure_dataset, load_installed
 from offdyn_bench.datasets.install import InstallError, VerifyReport, datasets_root, is_installed, verify_installed
 from offdyn_bench.datasets.manifest import MANIFEST_PATH, Entry, Manifest, ManifestError, read_manifest, write_manifest
-from offdyn_bench.datasets.transfer import TransferError, TransferLimits
 from offdyn_bench.datasets.policies import MLPPolicy, Policy, PolicyError, UniformRandomPolicy, load_policy, save_policy
 from offdyn_bench.datasets.recipes import (
     QUALITIES,
@@ -25,6 +24,7 @@ from offdyn_bench.datasets.recipes import (
     default_tasks,
     parse_dataset_id,
 )
+from offdyn_bench.datasets.transfer import TransferError, TransferLimits
 
 __all__ = [
     "Recipe", "Behaviour", "QUALITIES", "dataset_id", "parse_dataset_id", "default_recipe", "default_recipes",

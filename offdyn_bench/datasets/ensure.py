@@ -94,9 +94,20 @@ def ensure_dataset(dataset_id: str, *, progress: bool = True, echo: Callable[[st
                                f"({report.problems[0]}); run: offdyn-bench datasets download {dataset_id} --force")
         echo(f"{dataset_id}: installed at {path}; {len(recorded.files or {})} files match the manifest's sha256")
         return path
-    if configured_remote(remote):
-        return _download(dataset_id, remote_url(remote), root, manifest, force, limits, progress, echo)
-    return _rebuild(dataset_id, root, manifest, force, progress, echo)
+    try:
+        if configured_remote(remote):
+            return _download(dataset_id, remote_url(remote), root, manifest, force, limits, progress, echo)
+        return _rebuild(dataset_id, root, manifest, force, progress, echo)
+    except InstallError:
+        # Another process installed it while this one worked: use that copy if it verifies.
+        if force or not hashes or not is_installed(dataset_id, root):
+            raise
+        assert recorded is not None
+        if not verify_installed(recorded, root).ok:
+            raise
+        echo(f"{dataset_id}: installed meanwhile by another process at {dataset_dir(dataset_id, root)}; "
+             f"{len(recorded.files or {})} files match the manifest's sha256")
+        return dataset_dir(dataset_id, root)
 
 
 def _download(dataset_id: str, base: str, root: pathlib.Path, manifest: Manifest, force: bool,

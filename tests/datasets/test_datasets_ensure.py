@@ -185,3 +185,18 @@ def test_list_columns_are_what_they_say(recorded: Entry, tmp_path) -> None:
     assert built_row.split()[1:4] == [str(recorded.total_steps), f"{recorded.archive.size / 1e6:.1f}", "yes"]
     unbuilt_row = next(line for line in lines if line.startswith(unbuilt.dataset_id))
     assert unbuilt_row.split()[1:4] == [str(recorded.recipe.num_transitions), "-", "no"]
+
+
+def test_a_copy_installed_meanwhile_by_another_process_is_used(recorded: Entry, no_remote, monkeypatch,
+                                                               isolated_paths) -> None:
+    from offdyn_bench.datasets import ensure as ensure_module
+
+    def other_process_wins(recipe, **kwargs):  # noqa: ANN001, ANN202 - build_dataset's signature
+        build_dataset(recipe, root=kwargs["root"])  # the other process's install
+        raise InstallError(f"{recipe.dataset_id} is already installed; pass --force to replace it")
+
+    monkeypatch.setattr(ensure_module, "build_dataset", other_process_wins)
+    said: list[str] = []
+    path = ensure_dataset(recorded.dataset_id, manifest=Manifest.from_entries([recorded]), echo=said.append,
+                          progress=False)
+    assert "installed meanwhile by another process" in said[-1] and tree_sha256(path) == recorded.files
