@@ -151,3 +151,30 @@ def test_fuzz_manifest_datasets_field(datasets: Any) -> None:
         Manifest.from_dict({"format": MANIFEST_FORMAT, "datasets": datasets}, where="fuzz")
     except ManifestError as error:
         assert "\n" not in str(error)
+
+
+@hypothesis.settings(max_examples=200, deadline=None)
+@hypothesis.given(data=JSON_VALUES | st.fixed_dictionaries({"format": st.just(MANIFEST_FORMAT)}, optional={
+    "datasets": st.dictionaries(st.text(max_size=8), JSON_VALUES | st.just(valid_entry()), max_size=3)}))
+def test_fuzz_whole_manifests(data: Any) -> None:
+    try:
+        manifest = Manifest.from_dict(data, where="fuzz")
+    except ManifestError as error:
+        assert "\n" not in str(error)
+    else:
+        assert Manifest.from_dict(manifest.to_dict()) == manifest
+
+
+@hypothesis.settings(max_examples=200, deadline=None)
+@hypothesis.given(values=st.dictionaries(st.sampled_from(["OFFDYN_DOWNLOAD_DEADLINE", "OFFDYN_DOWNLOAD_MIN_RATE",
+                                                          "OFFDYN_DOWNLOAD_RATE_WINDOW"]),
+                                         st.text(max_size=12) | st.floats().map(str)))
+def test_fuzz_transfer_limits_from_the_environment(values: dict[str, str]) -> None:
+    from offdyn_bench.datasets.transfer import TransferError, TransferLimits
+
+    try:
+        limits = TransferLimits.from_environment(values)
+    except TransferError as error:
+        assert "\n" not in str(error) and any(name in str(error) for name in values)
+    else:
+        assert limits.deadline_s > 0 and limits.rate_window_s > 0 and limits.min_rate_bytes_per_s >= 0
