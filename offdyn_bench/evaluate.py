@@ -260,10 +260,11 @@ def _conformance(loaded: LoadedAgents, task: str, track: str | None, budget: str
 def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: str | None = None,
              budget: str | None = None, seeds: Sequence[int] | None = None, episodes: int = EVAL_EPISODES,
              out: str | os.PathLike[str] | None = None, method: str | None = None,
-             progress: bool = True) -> dict[str, Any]:
+             progress: bool = True, side: str = "target") -> dict[str, Any]:
     """Evaluate ``agent`` (a run folder or ``module:factory``) on ``task``'s target; write the
     record to ``out`` (default: ``<run folder>/evaluation.json``; none for a factory without
-    ``out``) and return it."""
+    ``out``) and return it. ``side="source"`` scores the same policies in the source instead, for
+    the source-target gap of a task (such a record is no protocol result)."""
     from tqdm import tqdm
 
     from offdyn_bench.tasks import get_task
@@ -290,17 +291,21 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
             raise EvaluationError(f"--method {method!r} contradicts the run's algorithm {loaded.method!r}")
         loaded.method = method
     assert task is not None
+    if side not in ("source", "target"):
+        raise EvaluationError(f"side {side!r}; expected 'target' (the protocol) or 'source' (the gap)")
     track, budget, notes = _conformance(loaded, task, track, budget, episodes)
+    if side == "source":
+        notes.append("evaluated in the source, not the target (the source-target gap)")
     target = pathlib.Path(out) if out is not None else (agent_path / EVALUATION_FILE if is_run else None)
     if target is not None:
         _check_writable(target)
 
     pair = get_task(task)
     episode_seeds = [int(EPISODE_SEEDS[0]) + e for e in range(episodes)]
-    env = pair.make("target")
+    env = pair.make(side)
     per_seed = []
     bar = tqdm(total=len(loaded.agents) * episodes, unit="episode", disable=not progress,
-               desc=f"evaluate {pair.name}")
+               desc=f"evaluate {pair.name} ({side})")
     try:
         for seed, agent_obj in loaded.agents:
             returns = []
@@ -314,20 +319,22 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
     record = {
         "format": FORMAT, "format_version": 1, "protocol_version": PROTOCOL_VERSION,
         "task": pair.name, "task_version": pair.version, "target_env_id": pair.env_id("target"),
+        "side": side, "env_id": pair.env_id(side),
         "track": track, "budget": budget, "method": loaded.method, "agent": loaded.description,
         "steps": loaded.steps, "dataset": loaded.dataset, "train_command": loaded.train_command,
         "episode_seeds": episode_seeds, "seeds": per_seed,
         "protocol_conformant": not notes, "notes": notes,
         "versions": versions(),
-        "command": "offdyn-bench evaluate " + shlex.join(_command_args(agent, task, track, budget, episodes)),
+        "command": "offdyn-bench evaluate " + shlex.join(_command_args(agent, task, track, budget, episodes, side)),
     }
     if target is not None:
         _write_atomic(target, record)
     return record
 
 
-def _command_args(agent: Any, task: str, track: str | None, budget: str | None, episodes: int) -> list[str]:
-    args = ["--agent", str(agent), "--task", task]
+def _command_args(agent: Any, task: str, track: str | None, budget: str | None, episodes: int,
+                  side: str) -> list[str]:
+    args = ["--agent", str(agent), "--task", task] + (["--side", side] if side != "target" else [])
     args += ["--track", track] if track else []
     args += ["--budget", budget] if budget else []
     args += ["--episodes", str(episodes)] if episodes != EVAL_EPISODES else []

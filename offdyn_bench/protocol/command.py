@@ -66,6 +66,8 @@ def evaluate_command(
     out: Path | None = typer.Option(None, "--out", help="Where to write evaluation.json (default: inside the run "
                                                         "folder; required to keep a factory's record)."),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
+    side: str = typer.Option("target", "--side", help="target (the protocol) or source (the task's source-target "
+                                                      "gap: the same policies in the source)."),
 ) -> None:
     """Evaluate the final policy of every training seed on the task's target under the protocol:
     deterministic actions, fixed episode seeds; writes raw per-episode returns with versions."""
@@ -74,7 +76,7 @@ def evaluate_command(
 
     try:
         record = evaluate(agent, task, track=track, budget=budget, seeds=_parse_seeds(seeds), episodes=episodes,
-                          out=out, method=method, progress=progress)
+                          out=out, method=method, progress=progress, side=side)
         scores = method_scores(record["method"] or "agent", [record], record["budget"])
     except OffdynError as error:
         raise _fail(error) from None

@@ -79,6 +79,14 @@ def test_a_run_folder_is_evaluated_per_training_seed(finished_run):
     assert evaluate(finished_run, progress=False, out=finished_run / "again.json")["seeds"] == record["seeds"]
 
 
+def test_the_source_side_gives_the_gap_and_is_no_protocol_result(finished_run, tmp_path):
+    record = evaluate(finished_run, progress=False, side="source", episodes=2, out=tmp_path / "source.json")
+    assert record["side"] == "source" and record["env_id"].endswith("-source-v0")
+    assert any("in the source" in note for note in record["notes"]) and not record["protocol_conformant"]
+    with pytest.raises(EvaluationError, match="side 'real'"):
+        evaluate(finished_run, progress=False, side="real")
+
+
 def test_run_agents_match_the_trainers_own_deployed_policy(finished_run):
     """The evaluator reads the actor out of the checkpoint; the trainer's final evaluation used the
     same policy on episode seed 1,000,000: replaying that seed must give the same return."""
