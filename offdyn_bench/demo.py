@@ -3,7 +3,9 @@
 1. the task grid; 2. one pair rolled out with the same actions in source and target;
 3. its target dataset rebuilt from the recipe and checked byte for byte against the manifest;
 4. gap diagnosis of that dataset against plain ``Hopper-v5``, an effect nobody declared to it;
-5. a short training run of RL on source and DARC on a fast pair, scored in the target.
+5. short training runs of RL on source, DARC and the sac-target oracle on a fast pair;
+6. those runs scored under the protocol (normalized, IQM with a bootstrap interval);
+7. the leaderboard page built from the submissions store.
 Each step prints the command that does the same thing on its own.
 """
 
@@ -73,15 +75,6 @@ def same_action_divergence(task: str, seed: int = 0, horizon: int = 200) -> Dive
                       lengths["source"], lengths["target"])
 
 
-def _random_return(task: str, episodes: int, first_seed: int) -> float:
-    from offdyn_bench.datasets.collect import episode_returns
-    from offdyn_bench.datasets.policies import UniformRandomPolicy
-
-    env = get_task(task).make("target")
-    policy = UniformRandomPolicy(env.action_space.low, env.action_space.high, seed=0)  # type: ignore[attr-defined]
-    return float(np.mean(episode_returns(env, policy, episodes=episodes, seed=first_seed)))
-
-
 def demo_dataset(out: pathlib.Path) -> pathlib.Path:
     from offdyn_bench.datasets import build_dataset, default_recipe, read_manifest
 
@@ -120,51 +113,78 @@ def demo_diagnosis(dataset: pathlib.Path, out: pathlib.Path) -> None:
     typer.echo("   " + summary_text(result).replace("\n", "\n   "))
 
 
-def _train_or_reuse(algo: str, task: str, steps: int, out: pathlib.Path, **kwargs: Any) -> dict[str, Any]:
-    """Train, or read the result of the same finished run from an earlier demo."""
+def _train_or_reuse(algo: str, task: str, steps: int, out: pathlib.Path, **kwargs: Any) -> None:
+    """Train, or reuse the same finished run from an earlier demo."""
     from baselines.train import RESULT_FILE, train
 
-    finished = out / RESULT_FILE
-    if finished.is_file():
+    if (out / RESULT_FILE).is_file():
         typer.echo(f"   (reusing the finished run in {out})")
-        return json.loads(finished.read_text())
-    result = train(algo, task, steps=steps, out=out, eval_episodes=5, progress=False, **kwargs)
-    assert result is not None
-    return result
+        return
+    train(algo, task, steps=steps, out=out, eval_episodes=5, progress=True, **kwargs)
 
 
-def demo_training(out: pathlib.Path, steps: int) -> None:
-    from baselines.train import EVAL_SEED
-
+def demo_training(out: pathlib.Path, steps: int, n_seeds: int) -> list[pathlib.Path]:
     pair = get_task(DEMO_TRAINING_TASK)
-    typer.echo(f"\n== 5. Training on {pair.name}: {pair.description}")
+    typer.echo(f"\n== 5. Training on {pair.name} ({pair.description}), {n_seeds} seeds each")
     runs = out / "runs" / f"{steps}-steps"
+    common = f"--task {pair.name} --steps {steps} --n-seeds {n_seeds}"
     source_dir = runs / "sac-source"
-    typer.echo(f"   (offdyn-bench train sac-source --task {pair.name} --steps {steps} --out {source_dir})")
-    source = _train_or_reuse("sac-source", pair.name, steps, source_dir, overrides=DEMO_TRAINING)
+    typer.echo(f"   RL on source:  offdyn-bench train sac-source {common} --out {source_dir}")
+    _train_or_reuse("sac-source", pair.name, steps, source_dir, n_seeds=n_seeds, overrides=DEMO_TRAINING)
     dataset = f"collect:{source_dir}:5000"
-    typer.echo(f"   (offdyn-bench train darc --task {pair.name} --dataset {dataset} --steps {steps} "
-               f"--out {runs / 'darc'})")
-    darc = _train_or_reuse("darc", pair.name, steps, runs / "darc", dataset=dataset,
-                           overrides=DEMO_TRAINING | DEMO_OFF_DYNAMICS)
-    random_return = _random_return(pair.name, 5, EVAL_SEED)
-    # InvertedPendulum pays 1 per step for at most 1000 steps: the best possible return is 1000.
-    best = 1000.0
-    typer.echo("   score in the target (5 episodes with fixed seeds; normalized = 100 (J - J_random) / "
-               "(J_max - J_random), J_max = 1000, the task's maximum return)")
-    typer.echo(f"   {'policy':<12} {'return':>8} {'normalized':>11}")
-    for name, value in (("random", random_return), ("sac-source", source["mean_return"]),
-                        ("darc", darc["mean_return"])):
-        typer.echo(f"   {name:<12} {value:>8.1f} {100 * (value - random_return) / (best - random_return):>11.1f}")
+    typer.echo(f"   DARC:          offdyn-bench train darc {common} --dataset {dataset} --out {runs / 'darc'}")
+    _train_or_reuse("darc", pair.name, steps, runs / "darc", n_seeds=n_seeds, dataset=dataset,
+                    overrides=DEMO_TRAINING | DEMO_OFF_DYNAMICS)
+    typer.echo(f"   oracle:        offdyn-bench train sac-target {common} --out {runs / 'sac-target'}")
+    _train_or_reuse("sac-target", pair.name, steps, runs / "sac-target", n_seeds=n_seeds, overrides=DEMO_TRAINING)
+    return [source_dir, runs / "darc", runs / "sac-target"]
+
+
+def demo_score(out: pathlib.Path, run_dirs: list[pathlib.Path]) -> None:
+    from offdyn_bench.evaluate import evaluate
+    from offdyn_bench.protocol import EVAL_EPISODES
+    from offdyn_bench.protocol.references import record_random_reference
+    from offdyn_bench.protocol.report import score_report
+
+    typer.echo(f"\n== 6. Scored under the protocol: final policies, deterministic, {EVAL_EPISODES} target episodes "
+               "with fixed seeds per training seed")
+    records = []
+    for run in run_dirs:
+        typer.echo(f"   (offdyn-bench evaluate --agent {run})")
+        records.append(evaluate(run, progress=True))
+    references_file = out / "reference_scores.json"
+    typer.echo(f"   (offdyn-bench protocol reference random --task {DEMO_TRAINING_TASK}; here into {references_file})")
+    random = record_random_reference(DEMO_TRAINING_TASK, references_file)
+    oracle = records[-1]
+    j_oracle = float(np.mean([x for s in oracle["seeds"] for x in s["returns"]]))
+    typer.echo(f"   references: random {random.mean_return:.1f}; oracle = the demo's own sac-target at the same "
+               f"{oracle['steps']}-step budget, {j_oracle:.1f} (the protocol's rule at a demo-sized budget, so not a "
+               "leaderboard number)")
+    typer.echo(f"   (offdyn-bench protocol score --reference {DEMO_TRAINING_TASK}={random.mean_return:.6g},{j_oracle:.6g} "
+               + " ".join(str(r / "evaluation.json") for r in run_dirs[:2]) + ")")
+    report = score_report(records[:2], references={DEMO_TRAINING_TASK: (random.mean_return, j_oracle)})
+    typer.echo("   " + report.to_text().replace("\n", "\n   "))
+
+
+def demo_leaderboard(out: pathlib.Path) -> None:
+    from leaderboard.render import build_site
+    from leaderboard.store import DEFAULT_STORE
+
+    typer.echo("\n== 7. The leaderboard page, from the submissions in leaderboard/submissions/")
+    typer.echo(f"   (offdyn-bench leaderboard build --out {out / 'leaderboard'})")
+    written = build_site(DEFAULT_STORE, out / "leaderboard")
+    typer.echo(f"   wrote {', '.join(str(p) for p in written)}")
 
 
 def run_demo(task: str = "hopper-gravity-0.5", seed: int = 0, out: pathlib.Path = pathlib.Path("demo-out"),
-             training_steps: int = 12_000) -> None:
+             training_steps: int = 12_000, n_seeds: int = 3) -> None:
     typer.echo("== 1. The task grid (robot x shift family: number of pairs)")
+    typer.echo("   (offdyn-bench tasks list)")
     typer.echo(grid_summary())
 
     pair = get_task(task)
     typer.echo(f"\n== 2. One pair, same actions in source and target: {pair.name}")
+    typer.echo(f"   (offdyn-bench tasks show {pair.name})")
     typer.echo(f"   source {pair.env_id('source')}: " + (", ".join(e.describe() for e in pair.source_effects) or "nominal"))
     typer.echo(f"   target {pair.env_id('target')}: " + (", ".join(e.describe() for e in pair.target_effects) or "nominal"))
     result = same_action_divergence(task, seed=seed)
@@ -180,5 +200,6 @@ def run_demo(task: str = "hopper-gravity-0.5", seed: int = 0, out: pathlib.Path 
     dataset = demo_dataset(out)
     demo_diagnosis(dataset, out)
     if training_steps > 0:
-        demo_training(out, training_steps)
+        demo_score(out, demo_training(out, training_steps, n_seeds))
+    demo_leaderboard(out)
     typer.echo(f"\nEverything the demo wrote is under {out}/")
