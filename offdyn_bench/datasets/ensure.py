@@ -137,7 +137,8 @@ def _rebuild(dataset_id: str, root: pathlib.Path, manifest: Manifest, force: boo
     try:
         check_buildable(recipe)
     except MissingPolicyError as error:
-        raise DatasetUnavailableError(f"cannot rebuild {dataset_id}: {error}. {no_remote}") from error
+        reason = str(error).removeprefix(f"{dataset_id}: ")
+        raise DatasetUnavailableError(f"cannot rebuild {dataset_id}: {reason}. {no_remote}") from error
     verified = entry.files is not None
     echo(f"{dataset_id}: no remote configured ({REMOTE_ENV} unset); rebuilding it from its recipe "
          f"({recipe.num_transitions} transitions in the target of {recipe.task})"
