@@ -50,6 +50,8 @@ def _process_start(pid: int) -> str | None:
     except FileNotFoundError:
         if pathlib.Path("/proc/self/stat").exists():
             return None
+        if os.name == "nt":
+            return "0"  # os.kill would terminate it there: assume it runs, never clean it up
         try:
             os.kill(pid, 0)
         except ProcessLookupError:
