@@ -206,8 +206,6 @@ class RemoteFile:
         self.url = url
         self._response = response
         self._watchdog = watchdog
-        length = response.headers.get("Content-Length") if getattr(response, "headers", None) else None
-        self.length = int(length) if length is not None and str(length).isdigit() else None
 
     @property
     def received(self) -> int:
