@@ -1,0 +1,82 @@
+"""The command line's front door: sub-commands load on first use, ``--version``, and help that
+lists every sub-command without importing the heavy libraries behind them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from importlib import metadata
+
+import pytest
+from typer.testing import CliRunner
+
+from offdyn_bench.cli import SUB_COMMANDS, app, load_sub_command, version_lines
+
+runner = CliRunner()
+HEAVY = ("torch", "scipy", "matplotlib", "mujoco.sysid", "minari", "baselines.train", "offdyn_bench.diagnose.loop")
+
+
+def _modules_after(code: str) -> set[str]:
+    """The heavy modules loaded by ``code`` in a fresh interpreter."""
+    script = textwrap.dedent(f"""
+        import json, sys
+        {code}
+        print(json.dumps(sorted(m for m in {list(HEAVY)!r} if m in sys.modules)))
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=True)
+    return set(json.loads(result.stdout.strip().splitlines()[-1]))
+
+
+def test_importing_the_cli_imports_no_heavy_library():
+    assert _modules_after("import offdyn_bench.cli") == set()
+
+
+@pytest.mark.parametrize("args", [["--help"], ["tasks", "list", "--help"], ["--version"]])
+def test_help_and_version_import_no_heavy_library(args):
+    code = f"""
+        from offdyn_bench.cli import app
+        try:
+            app({args!r}, standalone_mode=False)
+        except SystemExit:
+            pass
+    """
+    assert _modules_after(code) == set()
+
+
+def test_import_offdyn_bench_still_registers_every_pair():
+    code = """
+        import gymnasium, offdyn_bench
+        assert "offdyn/Hopper-gravity-0.5-target-v0" in gymnasium.registry
+        assert callable(offdyn_bench.make_robot_env) and "make_robot_env" in dir(offdyn_bench)
+    """
+    assert _modules_after(code) == set()
+
+
+def test_help_lists_every_sub_command_with_its_own_help_line():
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0, result.output
+    for name in [*SUB_COMMANDS, "demo"]:
+        assert name in result.output
+    for name, entry in SUB_COMMANDS.items():
+        command = load_sub_command(name)
+        own_help = " ".join((command.help or "").split("\n\n")[0].split())
+        assert entry.help == own_help, f"{name}: the table says {entry.help!r}, the command {own_help!r}"
+
+
+def test_a_sub_command_runs_and_a_typo_is_pointed_at():
+    result = runner.invoke(app, ["tasks", "list", "--robot", "hopper", "--shift", "gravity"])
+    assert result.exit_code == 0 and "hopper-gravity-0.5" in result.output
+    typo = runner.invoke(app, ["taks", "list"])
+    assert typo.exit_code == 2
+    assert "No such command 'taks'" in typo.output and "tasks" in typo.output
+
+
+def test_version_prints_the_suite_and_its_libraries():
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0
+    lines = result.output.strip().splitlines()
+    assert lines[0] == "offdyn-bench 0.1.0"
+    assert lines[1:] == [f"{name} {metadata.version(name)}" for name in ("mujoco", "gymnasium", "minari", "torch")]
+    assert version_lines() == lines
