@@ -82,6 +82,14 @@ def _describe_difference(field: str, values: Mapping[Path, Any]) -> str:
         "; a submission gathers evaluations made alike (one suite install, one track, one budget, one method)"
 
 
+def _dataset_reference(provenance: Any) -> dict[str, str] | None:
+    """The submission's view of a run's dataset provenance: the Minari id and the data's sha256."""
+    if not isinstance(provenance, dict):
+        return None
+    ident = provenance.get("id") or provenance.get("dataset_id")
+    return {"id": ident, "sha256": provenance.get("sha256")}
+
+
 def assemble_submission(runs_dir: Path, *, method: str, description: str = "", code_url: str | None = None,
                         commit: str | None = None, track: str | None = None, budget: str | None = None,
                         learning_curves: bool = True) -> Submission:
@@ -96,6 +104,16 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
                               "run folder first")
     evaluations = {path: _read_evaluation(path) for path in paths}
 
+    for path, evaluation in evaluations.items():
+        # `evaluate` says itself when a record is no protocol result (the source side, another
+        # budget or dataset, fewer episodes): such a record never reaches the board.
+        if evaluation.get("side", "target") != "target":
+            raise SubmissionError(f"{path} evaluates the {evaluation.get('side')} side; the board takes target "
+                                  "evaluations only")
+        if evaluation.get("protocol_conformant") is False:
+            reasons = "; ".join(str(note) for note in evaluation.get("notes") or []) or "see its notes"
+            raise SubmissionError(f"{path} is not a protocol result: {reasons}")
+
     by_task: dict[str, Path] = {}
     for path, evaluation in evaluations.items():
         task = evaluation["task"]
@@ -108,6 +126,13 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
             raise SubmissionError(_describe_difference(field, values))
     first = next(iter(evaluations.values()))
     for option, field in ((track, "track"), (budget, "budget")):
+        if field == "track" and first[field] is None:
+            # A reference point (sac-source, sac-target) belongs on no track of its own: it is
+            # submitted beside the track named here.
+            if option is None:
+                raise SubmissionError(f"the evaluations under {runs_dir} name no track (a reference method); "
+                                      "pass --track offline-target or --track online-target")
+            continue
         if option is not None and option != first[field]:
             raise SubmissionError(f"--{field} {option} but the evaluations under {runs_dir} were made on "
                                   f"{field} {first[field]!r}")
@@ -129,7 +154,7 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
         entry: dict[str, Any] = {
             "task_version": evaluation["task_version"],
             "target_env_id": evaluation["target_env_id"],
-            "dataset": evaluation.get("dataset"),
+            "dataset": _dataset_reference(evaluation.get("dataset")),
             "episode_seeds": evaluation["episode_seeds"],
             "seeds": [{"seed": s.get("seed"), "returns": s.get("returns")} if isinstance(s, dict) else s
                       for s in evaluation["seeds"]],
@@ -152,7 +177,7 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
         "format_version": SUBMISSION_FORMAT_VERSION,
         "protocol_version": first["protocol_version"],
         "method": method_entry,
-        "track": first["track"],
+        "track": first["track"] or track,
         "budget": first["budget"],
         "versions": first["versions"],
         "tasks": tasks,
