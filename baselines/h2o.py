@@ -122,9 +122,9 @@ class H2O:
         log_gap_weights = (gap / gap.sum(dim=1, keepdim=True)).log()  # log w_i, sums to 1 over the batch
         beta = self.config.min_q_weight
 
-        def value_penalty(q: QFunction) -> tuple[torch.Tensor, Metrics]:
-            q_sim = q(sim.observations, sim.actions)  # [S, 2, B]
-            q_real = q(real.observations, real.actions)
+        def value_penalty(q: QFunction, q_mixed: torch.Tensor) -> tuple[torch.Tensor, Metrics]:
+            # The mixed batch is real then simulated: its TD-loss values are Q on both halves.
+            q_real, q_sim = q_mixed.split([real.rewards.shape[1], sim.rewards.shape[1]], dim=2)  # [S, 2, B] each
             pushed_down = torch.logsumexp(q_sim + log_gap_weights[:, None, :], dim=2)
             penalty = (pushed_down - q_real.mean(dim=2)).sum(dim=1)
             return beta * penalty, {"h2o/penalty": penalty.detach()}

@@ -74,9 +74,11 @@ class Batch(NamedTuple):
 
 Metrics = dict[str, torch.Tensor]
 QFunction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-ExtraCriticLoss = Callable[[QFunction], tuple[torch.Tensor, Metrics]]
-"""Given ``q(observations, actions) -> [seeds, 2, batch]`` (live critic parameters), return a
-per-seed loss ``[seeds]`` to add to the critic loss, and metrics."""
+ExtraCriticLoss = Callable[[QFunction, torch.Tensor], tuple[torch.Tensor, Metrics]]
+"""Given ``q(observations, actions) -> [seeds, 2, batch]`` (live critic parameters) and the live
+values of the batch's own pairs, ``Q(s, a_data)`` ``[seeds, 2, batch]`` (computed for the TD loss
+already: reuse them rather than evaluate the critics twice), return a per-seed loss ``[seeds]`` to
+add to the critic loss, and metrics."""
 
 
 def seed_generator(seed: int) -> torch.Generator:
@@ -122,10 +124,17 @@ class SACAgent:
         mean, log_std = mlp(params, observations).chunk(2, dim=-1)
         return mean, log_std.clamp(self.config.log_std_min, self.config.log_std_max)
 
-    def sample_actions(self, observations: torch.Tensor, params: Params | None = None
+    def sample_actions(self, observations: torch.Tensor, params: Params | None = None, samples_per_state: int = 1
                        ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Reparameterised tanh-Gaussian sample and its log-probability, ``[S, B, A]``, ``[S, B]``."""
+        """Reparameterised tanh-Gaussian sample and its log-probability, ``[S, B, A]``, ``[S, B]``.
+
+        With ``samples_per_state`` = n: n samples per state, rows state-major (``[S, B * n, ...]``):
+        the same draws as sampling at ``observations.repeat_interleave(n, 1)`` (equal up to float
+        rounding), with the policy network evaluated once per state instead of n times."""
         mean, log_std = self._mean_log_std(observations, self.actor if params is None else params)
+        if samples_per_state > 1:
+            mean = mean.repeat_interleave(samples_per_state, dim=1)
+            log_std = log_std.repeat_interleave(samples_per_state, dim=1)
         noise = torch.randn(mean.shape, generator=self.generator)
         pre_tanh = mean + log_std.exp() * noise
         gaussian_log_prob = (-0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
@@ -213,7 +222,7 @@ def critic_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Ten
     loss_per_seed = 0.5 * squared_error.mean(dim=2).sum(dim=1)
     metrics: Metrics = {"critic/td_loss": loss_per_seed.detach(), "critic/q": q.detach().mean(dim=(1, 2))}
     if extra_loss is not None:
-        extra, extra_metrics = extra_loss(agent.q_values)
+        extra, extra_metrics = extra_loss(agent.q_values, q)
         loss_per_seed = loss_per_seed + extra
         metrics |= extra_metrics
     agent.critic_optimizer.zero_grad(set_to_none=True)
