@@ -38,6 +38,14 @@ def test_tracks_cover_every_reference_implementation():
     assert TRACKS["offline-target"].target_step_budget(BUDGETS["full"].source_steps) == 0
 
 
+def test_the_registry_and_the_protocol_agree_on_every_methods_track():
+    from baselines.algorithms import ALGORITHMS
+
+    for name, algorithm in ALGORITHMS.items():
+        expected = protocol.track_of_method(name) or "reference"
+        assert algorithm.track == expected, name
+
+
 def test_a_method_is_refused_on_a_track_it_does_not_fit():
     check_method_on_track("dap", "offline-target")
     check_method_on_track("sac-source", "online-target")  # a reference point, scored on every track
