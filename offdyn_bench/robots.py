@@ -28,6 +28,16 @@ class Robot:
     kinematic_joints: Mapping[str, str] = dataclasses.field(default_factory=dict)
     morph_parts: Mapping[str, str] = dataclasses.field(default_factory=dict)
     reference_env_id: str | None = None
+    task_episode_steps: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    """For a robot whose env offers several tasks (its ``task`` argument): each task's episode
+    length; empty for the locomotion robots, whose task is fixed."""
+
+    def episode_steps(self, task: str | None) -> int:
+        if task is None:
+            return self.max_episode_steps
+        if task not in self.task_episode_steps:
+            raise UnknownNameError(f"task of robot {self.name}", task, self.task_episode_steps)
+        return self.task_episode_steps[task]
 
     def load_env_class(self) -> type:
         module, _, attr = self.env_class.partition(":")
@@ -66,6 +76,13 @@ _ROBOT_LIST = [
         kinematic_joints={"thigh": "thigh_joint", "foot": "foot_joint"},
         morph_parts={"thigh": "thigh", "leg": "leg"},
         reference_env_id="Walker2d-v5",
+    ),
+    # Our own MJCF (assets/robots/wheel_legged.xml): H2O's real-robot validation, simulated.
+    Robot(
+        name="WheelLegged",
+        env_class="offdyn_bench.wheel_legged.env:WheelLeggedEnv",
+        max_episode_steps=6000,
+        task_episode_steps={"standstill": 6000, "movestraight": 4000},  # 30 s and 20 s at 200 Hz
     ),
     # A fast robot for learning tests of the baselines; not part of the benchmark grid.
     Robot(

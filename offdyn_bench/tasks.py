@@ -29,6 +29,9 @@ from offdyn_bench.effects import (
 )
 from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.robots import ROBOTS, get_robot
+from offdyn_bench.wheel_legged.pairs import ROBOT as WHEEL_LEGGED
+from offdyn_bench.wheel_legged.pairs import TASK_NAMES as WHEEL_LEGGED_TASKS
+from offdyn_bench.wheel_legged.pairs import real_robot_effects
 
 Side = Literal["source", "target"]
 SIDES: tuple[Side, ...] = ("source", "target")
@@ -47,11 +50,14 @@ class TaskPair:
     part: str | None = None
     version: int = 0
     description: str = ""
+    task: str | None = None
+    """The robot's task where its env offers several (``WheelLegged``: ``standstill`` or
+    ``movestraight``), passed to the env; ``None`` for robots with one task."""
 
     @property
     def pair_id(self) -> str:
-        """``Hopper-gravity-0.5`` or ``Walker2d-kinematic-foot-hard``."""
-        parts = [self.robot, self.shift] + ([self.part] if self.part else []) + [self.level]
+        """``Hopper-gravity-0.5``, ``Walker2d-kinematic-foot-hard``; no level: ``WheelLegged-standstill``."""
+        parts = [self.robot, self.shift] + ([self.part] if self.part else []) + ([self.level] if self.level else [])
         return "-".join(parts)
 
     @property
@@ -68,14 +74,18 @@ class TaskPair:
         return self.source_effects if side == "source" else self.target_effects
 
     def env_kwargs(self, side: Side) -> dict[str, Any]:
-        return {"robot": self.robot, "effects": [e.to_dict() for e in self.effects(side)]}
+        kwargs: dict[str, Any] = {"robot": self.robot, "effects": [e.to_dict() for e in self.effects(side)]}
+        if self.task is not None:
+            kwargs["task"] = self.task
+        return kwargs
 
     def make(self, side: Side, **kwargs: Any) -> gymnasium.Env:
         """``gymnasium.make`` of this pair's ``side`` id (registered on import)."""
         return gymnasium.make(self.env_id(side), **kwargs)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        # "task" only where set: the definitions (and dataset recipes' hashes) of other pairs stay as they were.
+        return ({"task": self.task} if self.task is not None else {}) | {
             "name": self.name,
             "robot": self.robot,
             "shift": self.shift,
@@ -93,6 +103,7 @@ class TaskPair:
     def from_dict(cls, data: Mapping[str, Any]) -> TaskPair:
         return cls(robot=data["robot"], shift=data["shift"], part=data.get("part"), level=data["level"],
                    version=int(data.get("version", 0)), description=data.get("description", ""),
+                   task=data.get("task"),
                    source_effects=effects_from_dicts(data["source_effects"]),
                    target_effects=effects_from_dicts(data["target_effects"]))
 
@@ -161,6 +172,12 @@ def _grid() -> list[TaskPair]:
                  part="slider", description="target slider (cart rail) range x0.2"),
         _shifted("InvertedPendulum", "gravity", "3.0", [Gravity(scale=3.0)], description="target gravity x3"),
     ]
+    # The wheel-legged balancer (issue 12): the clean model against the "real robot", one pair per task.
+    pairs += [TaskPair(robot=WHEEL_LEGGED, shift=task, level="", task=task, source_effects=(),
+                       target_effects=real_robot_effects(task),
+                       description=f"{task}: clean model -> real robot (motor dead zone, drive friction, "
+                                   "worn tyre friction, 5 ms sensor latency, sensor noise)")
+              for task in WHEEL_LEGGED_TASKS]
     return pairs
 
 
@@ -205,6 +222,6 @@ def register_tasks(pairs: Iterable[TaskPair] | None = None) -> list[str]:
                     raise OffdynError(f"{env_id} is already registered with other dynamics")
             else:
                 gymnasium.register(id=env_id, entry_point=ENTRY_POINT,
-                                   max_episode_steps=robot.max_episode_steps, kwargs=pair.env_kwargs(side))
+                                   max_episode_steps=robot.episode_steps(pair.task), kwargs=pair.env_kwargs(side))
             ids.append(env_id)
     return ids

@@ -21,8 +21,8 @@ from offdyn_bench.model_diff import DERIVED_FIELDS, model_differences
 from offdyn_bench.tasks import SIDES, TASKS, TaskPair, get_task, register_tasks
 
 ALL_IDS = [pair.env_id(side) for pair in TASKS.values() for side in SIDES]
-ID_PATTERN = re.compile(r"^offdyn/(Ant|HalfCheetah|Hopper|Walker2d|InvertedPendulum)-[a-z0-9-]+(-[a-z0-9]+)?-"
-                        r"[a-z0-9.]+-(source|target)-v\d+$")
+ID_PATTERN = re.compile(r"^offdyn/((Ant|HalfCheetah|Hopper|Walker2d|InvertedPendulum)-[a-z0-9-]+(-[a-z0-9]+)?-"
+                        r"[a-z0-9.]+|WheelLegged-(standstill|movestraight))-(source|target)-v\d+$")
 
 
 def _rollout(env: gymnasium.Env, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
@@ -151,8 +151,17 @@ def test_target_differs_from_base_only_where_its_effects_declare(name):
         for effect in effects:
             if effect.kind == "gravity":
                 np.testing.assert_allclose(compiled.opt.gravity, base.opt.gravity * effect.scale)
-            elif effect.kind == "friction":
+            elif effect.kind == "friction" and effect.target is None:
                 np.testing.assert_allclose(compiled.geom_friction, base.geom_friction * effect.scale)
+            elif effect.kind == "friction":
+                friction = differences["geom_friction"]
+                assert friction.after == pytest.approx(friction.before * effect.scale)
+                body = compiled.body(effect.target).id
+                assert set(friction.rows) == {compiled.geom(g).name for g in range(compiled.ngeom)
+                                              if compiled.geom_bodyid[g] == body}
+            elif effect.kind == "frictionloss":
+                assert differences["dof_frictionloss"].rows == (effect.target,)
+                assert differences["dof_frictionloss"].after[0] == pytest.approx(effect.value)
             elif effect.kind == "joint_range":
                 ratio = np.ptp(differences["jnt_range"].after) / np.ptp(differences["jnt_range"].before)
                 assert ratio == pytest.approx(effect.scale)
@@ -163,5 +172,7 @@ def test_target_differs_from_base_only_where_its_effects_declare(name):
                 assert mass.after[0, 0] / mass.before[0, 0] == pytest.approx(effect.scale**3)
             elif effect.kind == "action_noise":
                 assert not differences  # a channel effect leaves the model alone
+            elif effect.family == "channel":
+                assert not declared or differences  # the model changes only through its model effects
             else:
                 pytest.fail(f"no check for effect kind {effect.kind!r}")
