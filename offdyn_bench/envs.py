@@ -9,9 +9,10 @@ Every ``reset`` info carries ``state`` and every ``step`` info ``prev_state`` an
 full-physics state vector (``mjSTATE_FULLPHYSICS``: time, qpos, qvel, act, ...) followed by any
 channel delay buffers. The arrays are read-only: the state after one step is the next step's
 ``prev_state``, the same array. They are rows of blocks of 64 states (one allocation per 64 steps),
-so a state kept alone keeps its block alive: ``.copy()`` one to keep it on its own. Move the simulation between steps with ``set_state`` or
-:func:`set_full_state` (direct writes to ``data`` that leave the clock unchanged are not seen by
-the next ``prev_state``). :func:`set_full_state` restores an env exactly there.
+so a state kept alone keeps its block alive: ``.copy()`` one to keep it on its own. Move the
+simulation between steps with ``set_state`` or :func:`set_full_state` (direct writes to ``data``
+that leave the clock unchanged are not seen by the next ``prev_state``). :func:`set_full_state`
+restores an env exactly there.
 """
 
 from __future__ import annotations
