@@ -20,9 +20,14 @@ import gymnasium
 
 from offdyn_bench.effects import (
     ActionNoise,
+    ContactSolimp,
+    ContactSolref,
     Effect,
     Friction,
+    FrictionCone,
     Gravity,
+    Integrator,
+    NoSlip,
     JointRange,
     LimbSize,
     effects_from_dicts,
@@ -36,6 +41,8 @@ from offdyn_bench.wheel_legged.pairs import real_robot_effects
 Side = Literal["source", "target"]
 SIDES: tuple[Side, ...] = ("source", "target")
 ENTRY_POINT = "offdyn_bench.envs:make_robot_env"
+# The physics engine a side runs on -> its entry point. DART (dartpy) is imported only when built.
+ENGINE_ENTRY_POINTS = {"mujoco": ENTRY_POINT, "dart": "offdyn_bench.engines.dart_env:make_dart_env"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +60,8 @@ class TaskPair:
     task: str | None = None
     """The robot's task where its env offers several (``WheelLegged``: ``standstill`` or
     ``movestraight``), passed to the env; ``None`` for robots with one task."""
+    target_engine: str = "mujoco"
+    """The physics engine of the target (a key of ``ENGINE_ENTRY_POINTS``); sources run on MuJoCo."""
 
     @property
     def pair_id(self) -> str:
@@ -79,13 +88,24 @@ class TaskPair:
             kwargs["task"] = self.task
         return kwargs
 
+    def engine(self, side: Side) -> str:
+        _check_side(side)
+        return self.target_engine if side == "target" else "mujoco"
+
+    def entry_point(self, side: Side) -> str:
+        engine = self.engine(side)
+        if engine not in ENGINE_ENTRY_POINTS:
+            raise UnknownNameError("physics engine", engine, ENGINE_ENTRY_POINTS)
+        return ENGINE_ENTRY_POINTS[engine]
+
     def make(self, side: Side, **kwargs: Any) -> gymnasium.Env:
         """``gymnasium.make`` of this pair's ``side`` id (registered on import)."""
         return gymnasium.make(self.env_id(side), **kwargs)
 
     def to_dict(self) -> dict[str, Any]:
         # "task" only where set: the definitions (and dataset recipes' hashes) of other pairs stay as they were.
-        return ({"task": self.task} if self.task is not None else {}) | {
+        engine = {"target_engine": self.target_engine} if self.target_engine != "mujoco" else {}
+        return ({"task": self.task} if self.task is not None else {}) | engine | {
             "name": self.name,
             "robot": self.robot,
             "shift": self.shift,
@@ -103,7 +123,7 @@ class TaskPair:
     def from_dict(cls, data: Mapping[str, Any]) -> TaskPair:
         return cls(robot=data["robot"], shift=data["shift"], part=data.get("part"), level=data["level"],
                    version=int(data.get("version", 0)), description=data.get("description", ""),
-                   task=data.get("task"),
+                   task=data.get("task"), target_engine=data.get("target_engine", "mujoco"),
                    source_effects=effects_from_dicts(data["source_effects"]),
                    target_effects=effects_from_dicts(data["target_effects"]))
 
@@ -138,6 +158,27 @@ def _h2o(robot: str, shift: str, level: str, source: Iterable[Effect], descripti
                     target_effects=(), description=description)
 
 
+# Engine-style swaps: robot -> the integrator its model does *not* use (Hopper and Walker2d ask for
+# RK4; HalfCheetah uses Euler, where implicitfast would change nothing: its only velocity force,
+# joint damping, is already implicit in MuJoCo's Euler).
+ENGINE_SWAP_ROBOTS = {"Hopper": "Euler", "Walker2d": "Euler", "HalfCheetah": "RK4"}
+
+
+def _contact_solver_swaps(other_integrator: str) -> list[tuple[str, str, list[Effect], str]]:
+    """(shift, level, target effects, description) of the MuJoCo contact/solver swaps."""
+    return [
+        ("contact", "soft", [ContactSolref(timeconst=0.08)],
+         "target contacts 4x softer: solref time constant 0.08 s on every geom (models: 0.02 s)"),
+        ("contact", "stiff", [ContactSolimp(dmin=0.99, dmax=0.99, width=0.001)],
+         "target contacts stiffer: solimp impedance 0.99 from 1 mm penetration on every geom"),
+        ("cone", "elliptic", [FrictionCone(cone="elliptic")],
+         "target friction cone elliptic (models: pyramidal)"),
+        ("integrator", other_integrator.lower(), [Integrator(integrator=other_integrator)],
+         f"target integrator {other_integrator} (the model asks for another one)"),
+        ("noslip", "10", [NoSlip(iterations=10)], "target no-slip solver on: 10 iterations (models: off)"),
+    ]
+
+
 def _grid() -> list[TaskPair]:
     pairs: list[TaskPair] = []
     for robot in LOCOMOTION_ROBOTS:
@@ -162,6 +203,15 @@ def _grid() -> list[TaskPair]:
             _h2o(robot, "h2o-joint-noise", "1.0", [ActionNoise(std=1.0)],
                  "H2O setting: simulator action noise N(0, 1)"),
         ]
+    # Engine swaps (issue 13): the same robot on another contact/solver model of MuJoCo ...
+    for robot, other_integrator in ENGINE_SWAP_ROBOTS.items():
+        pairs += [_shifted(robot, shift, level, effects, description=description)
+                  for shift, level, effects, description in _contact_solver_swaps(other_integrator)]
+    # ... and on another engine: DART runs the same MJCF (the engine is the shift; see offdyn_bench.engines).
+    pairs += [TaskPair(robot=robot, shift="dart", level="", source_effects=(), target_effects=(), target_engine="dart",
+                       description="MuJoCo source -> the same MJCF simulated by DART (hard LCP contacts, hard joint "
+                                   "limits, semi-implicit Euler; see offdyn_bench.engines.dart_env)")
+              for robot in ("Hopper", "Walker2d")]
     # Fast pairs for the baselines' learning tests (issue 3); InvertedPendulum is not one of the
     # benchmark's locomotion robots, but learns in minutes. A shorter cart rail in the target
     # (slider range x0.2: +-0.2 m) stops a source policy that lets the cart drift (DARC's kind of
@@ -217,11 +267,11 @@ def register_tasks(pairs: Iterable[TaskPair] | None = None) -> list[str]:
         for side in SIDES:
             env_id = pair.env_id(side)
             if env_id in gymnasium.registry:
-                existing = gymnasium.registry[env_id].kwargs
-                if existing != pair.env_kwargs(side):
+                existing = gymnasium.registry[env_id]
+                if existing.kwargs != pair.env_kwargs(side) or existing.entry_point != pair.entry_point(side):
                     raise OffdynError(f"{env_id} is already registered with other dynamics")
             else:
-                gymnasium.register(id=env_id, entry_point=ENTRY_POINT,
+                gymnasium.register(id=env_id, entry_point=pair.entry_point(side),
                                    max_episode_steps=robot.episode_steps(pair.task), kwargs=pair.env_kwargs(side))
             ids.append(env_id)
     return ids

@@ -22,7 +22,7 @@ from offdyn_bench.tasks import SIDES, TASKS, TaskPair, get_task, register_tasks
 
 ALL_IDS = [pair.env_id(side) for pair in TASKS.values() for side in SIDES]
 ID_PATTERN = re.compile(r"^offdyn/((Ant|HalfCheetah|Hopper|Walker2d|InvertedPendulum)-[a-z0-9-]+(-[a-z0-9]+)?-"
-                        r"[a-z0-9.]+|WheelLegged-(standstill|movestraight))-(source|target)-v\d+$")
+                        r"[a-z0-9.]+|WheelLegged-(standstill|movestraight)|(Hopper|Walker2d)-dart)-(source|target)-v\d+$")
 
 
 def _rollout(env: gymnasium.Env, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
@@ -174,5 +174,15 @@ def test_target_differs_from_base_only_where_its_effects_declare(name):
                 assert not differences  # a channel effect leaves the model alone
             elif effect.family == "channel":
                 assert not declared or differences  # the model changes only through its model effects
+            elif effect.kind == "contact_solref":
+                np.testing.assert_allclose(compiled.geom_solref, [[effect.timeconst, effect.dampratio]] * compiled.ngeom)
+                assert differences["geom_solref"]
+            elif effect.kind == "contact_solimp":
+                expected = [effect.dmin, effect.dmax, effect.width, effect.midpoint, effect.power]
+                np.testing.assert_allclose(compiled.geom_solimp, [expected] * compiled.ngeom)
+                assert differences["geom_solimp"]
+            elif effect.kind in ("friction_cone", "integrator", "noslip"):
+                field = effect.fields[0]
+                assert field in differences, f"{pair.env_id(side)}: {effect.kind} left {field} unchanged"
             else:
                 pytest.fail(f"no check for effect kind {effect.kind!r}")
