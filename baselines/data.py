@@ -248,12 +248,12 @@ def load_dataset(spec: str, task: TaskPair, seed: int = 0) -> tuple[TransitionDa
 
 
 def _load_minari(dataset_id: str) -> tuple[TransitionDataset, dict[str, Any]]:
-    try:
-        import minari
+    import minari
 
-        data = minari.load_dataset(dataset_id)
-    except Exception as error:  # minari raises several kinds for a missing dataset
-        raise OffdynError(f"cannot load Minari dataset {dataset_id!r}: {error}") from error
+    from offdyn_bench.datasets.ensure import load_installed
+
+    # A missing dataset names the suite's own install command, not Minari's "download=True".
+    data = load_installed(dataset_id)
     rows: dict[str, list[np.ndarray]] = {name: [] for name in ARRAYS}
     for episode in data.iterate_episodes():
         obs = np.asarray(episode.observations)

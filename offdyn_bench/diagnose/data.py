@@ -220,7 +220,12 @@ def load_minari(dataset: str | os.PathLike, nq: int | None = None, nv: int | Non
             data_dir = path / "data" if (path / "data").is_dir() else path
             loaded = minari.MinariDataset(data_dir)
         else:
-            loaded = minari.load_dataset(str(dataset))
+            from offdyn_bench.datasets.ensure import load_installed
+
+            # A missing dataset names the suite's install command, not Minari's "download=True".
+            loaded = load_installed(str(dataset))
+    except OffdynError as error:
+        raise DiagnosisInputError(str(error)) from None
     except Exception as error:  # Minari raises several types for a missing or broken dataset
         raise DiagnosisInputError(f"cannot load Minari dataset {str(dataset)!r}: {error}") from None
     columns: dict[str, list[np.ndarray]] = {k: [] for k in (*NPZ_REQUIRED, *NPZ_OPTIONAL)}

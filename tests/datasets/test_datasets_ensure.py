@@ -200,3 +200,14 @@ def test_a_copy_installed_meanwhile_by_another_process_is_used(recorded: Entry, 
     path = ensure_dataset(recorded.dataset_id, manifest=Manifest.from_entries([recorded]), echo=said.append,
                           progress=False)
     assert "installed meanwhile by another process" in said[-1] and tree_sha256(path) == recorded.files
+def test_a_missing_minari_dataset_names_the_suites_command():
+    from baselines.data import load_dataset
+    from offdyn_bench.diagnose.data import load_minari
+    from offdyn_bench.tasks import get_task
+    from offdyn_bench.errors import OffdynError
+    ident = "offdyn/hopper-gravity-0p5/random-v0"
+    for load in (lambda: load_dataset(ident, get_task("hopper-gravity-0.5")), lambda: load_minari(ident)):
+        with pytest.raises(OffdynError) as caught:
+            load()
+        assert f"offdyn-bench datasets download {ident}" in str(caught.value)
+        assert "download=True" not in str(caught.value)
