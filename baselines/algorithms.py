@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from types import MappingProxyType
 from typing import Any
 
-from baselines import cql, dap, darc, h2o, online_sac
+from baselines import cql, dap, darc, h2o, matl, online_sac
 from baselines.method import Method, MethodContext
 from baselines.limits import config_problems
 from offdyn_bench.errors import InvalidParameterError, OffdynError, UnknownNameError
@@ -47,6 +47,21 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType({a.name: a for a in [
               dap.Config, dap.build, needs_dataset=True, track="offline-target"),
     Algorithm("dap-u", "DAP+U: DAP with uncertainty-based robust action resampling",
               dap.dap_u_config, dap.build, needs_dataset=True, track="offline-target"),
+    Algorithm("matl", "MATL: simulator and robot TRPO agents aligned by a discriminator (online-target)",
+              matl.default_config("matl"), matl.BUILDERS["matl"], needs_dataset=False, track="online-target"),
+    Algorithm("matl-u", "MATL-U: MATL with the robot's auxiliary reward only (unilateral alignment)",
+              matl.default_config("matl-u"), matl.BUILDERS["matl-u"], needs_dataset=False, track="online-target"),
+    Algorithm("matl-f", "MATL-F: MATL starting from a fully trained simulator policy (--set init_run=DIR)",
+              matl.default_config("matl-f"), matl.BUILDERS["matl-f"], needs_dataset=False, track="online-target"),
+    Algorithm("independent", "TRPO on the robot alone with its target steps (MATL's reference point)",
+              matl.default_config("independent"), matl.BUILDERS["independent"], needs_dataset=False,
+              track="online-target"),
+    Algorithm("direct-transfer", "TRPO in the source, deployed in the target (MATL's reference point)",
+              matl.default_config("direct-transfer"), matl.BUILDERS["direct-transfer"], needs_dataset=False,
+              track="online-target"),
+    Algorithm("fine-tuning", "TRPO fine-tuning of a trained simulator policy on the robot (--set init_run=DIR)",
+              matl.default_config("fine-tuning"), matl.BUILDERS["fine-tuning"], needs_dataset=False,
+              track="online-target"),
 ]})
 
 

@@ -13,7 +13,8 @@ import typer
 from offdyn_bench.errors import OffdynError
 
 # The registry's names, for the help text (a test checks they match baselines.algorithms.ALGORITHMS).
-ALGORITHM_NAMES = ("sac-source", "sac-target", "cql", "darc", "darc-online", "h2o", "dap", "dap-u")
+ALGORITHM_NAMES = ("sac-source", "sac-target", "cql", "darc", "darc-online", "h2o", "dap", "dap-u", "matl",
+                   "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning")
 
 
 def train_command(

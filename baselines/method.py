@@ -23,6 +23,8 @@ class MethodContext:
     seeds: tuple[int, ...]
     target_data: Batch | None = None
     """The fixed target dataset (actions scaled to [-1, 1]), shared by all seeds; None if unused."""
+    task: str | None = None
+    """The task pair's name (MATL reads its robot for the target reward modes); None in unit tests."""
 
     def stream(self, name: str) -> int:
         """A seed for one random stream (buffer sampling, ...): the same name gives the same stream
@@ -45,6 +47,9 @@ class Method(Protocol):
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
         """The deterministic action used in the target environment, ``[S, A]``."""
         ...
+
+    # Optional: ``explore_target(observations, step)``, the target-environment action of a method that
+    # acts differently there (MATL's robot agent); without it the loop calls ``explore`` for both.
 
     def record(self, observations: torch.Tensor, stored_actions: torch.Tensor, rewards: torch.Tensor,
                next_observations: torch.Tensor, terminations: torch.Tensor) -> None:

@@ -119,7 +119,7 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
     probe = pair.make("target")
     context = MethodContext(observation_dim=int(np.prod(probe.observation_space.shape)),
                             action_dim=int(np.prod(probe.action_space.shape)), seeds=seeds,
-                            target_data=target_data)
+                            target_data=target_data, task=pair.name)
     probe.close()
     method = method_spec.build(config, context)
 
@@ -309,7 +309,8 @@ class _Loop:
             if self.target_step_limit is not None and self.target_steps_taken(step + 1) > self.target_step_limit:
                 raise ProtocolError(f"target step {self.target_steps_taken(step + 1)} exceeds the track's budget "
                                     f"of {self.target_step_limit} target steps per seed")
-            env_actions, stored = method.explore(torch.as_tensor(self.target_envs.observations, dtype=torch.float32),
+            explore_target = getattr(method, "explore_target", method.explore)
+            env_actions, stored = explore_target(torch.as_tensor(self.target_envs.observations, dtype=torch.float32),
                                                  step)
             obs, rewards, next_obs, terminations = self.target_envs.step(env_actions)
             method.record_target(obs, stored, rewards, next_obs, terminations)

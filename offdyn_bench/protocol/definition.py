@@ -51,7 +51,8 @@ TRACKS: Mapping[str, Track] = MappingProxyType({
         name="online-target",
         description="source simulator plus one target step per ten source steps, counted by the trainer",
         target_data="online", target_steps_per_source_step=0.1,
-        methods=("darc-online",), dataset_quality=None),
+        methods=("darc-online", "matl", "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning"),
+        dataset_quality=None),
 })
 
 REFERENCE_METHODS: Mapping[str, str] = MappingProxyType({
