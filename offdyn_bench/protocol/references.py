@@ -24,6 +24,7 @@ import numpy as np
 from offdyn_bench.protocol.definition import (
     BUDGETS,
     EPISODE_SEEDS,
+    MIN_SEEDS,
     PROTOCOL_VERSION,
     ProtocolError,
     get_budget,
@@ -188,6 +189,14 @@ def record_oracle_reference(evaluations: Sequence[Mapping[str, Any]],
     seeds = [s for e in evaluations for s in e["seeds"]]
     if len({s["seed"] for s in seeds}) != len(seeds):
         raise ProtocolError("the evaluations contain a training seed twice")
+    # The oracle anchors every normalized score of the task: it needs at least the seeds a method does.
+    if len(seeds) < MIN_SEEDS:
+        raise ProtocolError(f"the evaluations hold {len(seeds)} training seed(s); an oracle needs at least "
+                            f"{MIN_SEEDS}, like any method")
+    for e in evaluations:
+        if e.get("protocol_conformant") is False or e.get("side", "target") != "target":
+            raise ProtocolError(f"evaluation of {e.get('agent', {}).get('path')!r} is not a protocol result: "
+                                + "; ".join(map(str, e.get("notes") or ["it was not made in the target"])))
     returns = [float(x) for s in sorted(seeds, key=lambda s: s["seed"]) for x in s["returns"]]
     if not all(math.isfinite(x) for x in returns):
         raise ProtocolError("the oracle's returns contain NaN or infinite values")

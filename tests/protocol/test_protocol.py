@@ -143,17 +143,21 @@ def _evaluation(task="hopper-gravity-0.5", method="sac-target", budget="lite", s
 
 def test_oracle_reference_from_evaluations(tmp_path):
     path = tmp_path / "refs.json"
-    score = record_oracle_reference([_evaluation(seed=0), _evaluation(seed=1, returns=(200.0, 220.0))], path)
-    assert score.mean_return == pytest.approx(160.0)
+    five = [_evaluation(seed=s, returns=(100.0 * (s + 1), 100.0 * (s + 1) + 20.0)) for s in range(5)]
+    score = record_oracle_reference(five, path)
+    assert score.mean_return == pytest.approx(310.0)  # mean of 100..500, +10
     stored = reference_scores(path)["hopper-gravity-0.5"]["oracle/lite"]
-    assert stored.provenance["seeds"] == [0, 1] and stored.returns == (100.0, 120.0, 200.0, 220.0)
+    assert stored.provenance["seeds"] == [0, 1, 2, 3, 4] and stored.returns[:4] == (100.0, 120.0, 200.0, 220.0)
     before = path.read_bytes()
     for evaluations, message in [
         ([_evaluation(method="dap")], "an oracle reference is sac-target"),
         ([_evaluation(), _evaluation(task="hopper-friction-0.5", seed=1)], "mix tasks"),
         ([_evaluation(budget=None)], "not at a protocol budget"),
-        ([_evaluation(), _evaluation()], "a training seed twice"),
-        ([_evaluation(returns=(float("inf"),))], "NaN or infinite"),
+        (five[:4] + [_evaluation(seed=0)], "a training seed twice"),
+        (five[:4], "4 training seed\\(s\\); an oracle needs at least 5"),
+        (five[:4] + [_evaluation(seed=9) | {"protocol_conformant": False, "notes": ["20 episodes"]}],
+         "not a protocol result: 20 episodes"),
+        (five[:4] + [_evaluation(seed=9, returns=(float("inf"),))], "NaN or infinite"),
         ([], "no evaluation given"),
     ]:
         with pytest.raises(ProtocolError, match=message):
