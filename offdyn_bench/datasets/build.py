@@ -98,6 +98,13 @@ def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Poli
         seed = [recipe.seed, 1]
         return (UniformRandomPolicy(space.low, space.high, seed=np.random.SeedSequence(seed).generate_state(1)[0]),
                 recipe, {"kind": "uniform-random", "rng_seed": seed})
+    if behaviour.kind == "human-operator":
+        from offdyn_bench.wheel_legged.operator import HumanOperator  # only this robot's builds need scipy
+
+        seed = [recipe.seed, 3]
+        operator = HumanOperator(str(pair.task), seed=int(np.random.SeedSequence(seed).generate_state(1)[0]))
+        return operator, recipe, {**operator.describe(), "rng_seed": seed,
+                                  "episode_rng": "numpy default_rng([operator seed, episode reset seed])"}
     path = repo_path(str(behaviour.policy))
     if not path.is_file():
         raise _missing_behaviour(recipe, pair)

@@ -17,7 +17,7 @@ from offdyn_bench.datasets.install import datasets_root, is_installed, verify_in
 from offdyn_bench.datasets.staging import clean_stale_staging
 from offdyn_bench.datasets.transfer import TransferLimits
 from offdyn_bench.datasets.manifest import MANIFEST_PATH, Manifest, read_manifest
-from offdyn_bench.datasets.recipes import QUALITIES, dataset_id
+from offdyn_bench.datasets.recipes import dataset_id, qualities_of
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TASKS
 
@@ -54,7 +54,7 @@ def list_command(
         manifest = read_manifest(manifest_path)
         ids = sorted(manifest.entries)
         if buildable:
-            ids += sorted({dataset_id(name, q) for name in TASKS for q in QUALITIES} - set(ids))
+            ids += sorted({dataset_id(pair, q) for pair in TASKS.values() for q in qualities_of(pair)} - set(ids))
         root = datasets_root()
         clean_stale_staging(root)  # so a replace killed midway shows as installed again
         width = max([len("dataset id"), *map(len, ids)])

@@ -77,6 +77,9 @@ def run_episode(env: gymnasium.Env, policy: Policy, *, seed: int, max_steps: int
     space = env.action_space
     assert isinstance(space, gymnasium.spaces.Box)
     obs, info = env.reset(seed=seed)
+    start_episode = getattr(policy, "start_episode", None)
+    if start_episode is not None:  # a behaviour with memory (the human operator) starts afresh, seeded
+        start_episode(seed)
     observations = [obs]
     actions, rewards, terminations, truncations = [], [], [], []
     infos = _InfoColumns()

@@ -24,8 +24,11 @@ from typing import Any, Literal
 from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.tasks import TASKS, TaskPair, get_task
 
-Quality = Literal["random", "source-policy"]
-QUALITIES: tuple[Quality, ...] = ("random", "source-policy")
+Quality = Literal["random", "source-policy", "human-operator"]
+QUALITIES: tuple[Quality, ...] = ("random", "source-policy", "human-operator")
+# The wheel-legged robot's target data is a person's, as on H2O's real robot; it has no SAC
+# behaviour policy. Every other robot has no human operator.
+HUMAN_OPERATOR_ROBOTS = ("WheelLegged",)
 
 NAMESPACE = "offdyn"
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -36,7 +39,9 @@ POLICIES_DIR = ASSETS_DIR / "policies"
 # transitions and its size ablation lost little at 15,000 and 10,000; 20,000 keeps us inside that
 # range while the default set still builds in minutes on two cores. The random quality has the
 # same size so that quality is the only thing that differs between the two.
-DEFAULT_TRANSITIONS: Mapping[Quality, int] = {"random": 20_000, "source-policy": 20_000}
+DEFAULT_TRANSITIONS: Mapping[Quality, int] = {"random": 20_000, "source-policy": 20_000,
+                                               # H2O recorded 100,000 human-controlled transitions per task.
+                                               "human-operator": 100_000}
 # Gaussian noise (in action-space units, clipped to the box) on the behaviour policy's
 # deterministic action: DAP "samples" its source policy in the target; a fixed-std noise keeps
 # that sampling reproducible and independent of how a checkpoint parameterizes its std.
@@ -59,11 +64,25 @@ def task_slug(task_name: str) -> str:
     return task_name.replace(".", "p")
 
 
+def qualities_of(pair: TaskPair) -> tuple[Quality, ...]:
+    """The dataset qualities a pair has: ``random`` and ``source-policy``, or, for the wheel-legged
+    robot, ``random`` and ``human-operator``."""
+    if pair.robot in HUMAN_OPERATOR_ROBOTS:
+        return ("random", "human-operator")
+    return ("random", "source-policy")
+
+
+def _check_quality(pair: TaskPair, quality: str) -> None:
+    if quality not in QUALITIES:
+        raise UnknownNameError("dataset quality", quality, QUALITIES)
+    if quality not in qualities_of(pair):
+        raise RecipeError(f"task {pair.name} has no {quality!r} dataset; its qualities are {list(qualities_of(pair))}")
+
+
 def dataset_id(task: str | TaskPair, quality: str, version: int = 0) -> str:
     """``dataset_id("hopper-gravity-0.5", "source-policy")`` -> ``offdyn/hopper-gravity-0p5/source-policy-v0``."""
     pair = task if isinstance(task, TaskPair) else get_task(task)
-    if quality not in QUALITIES:
-        raise UnknownNameError("dataset quality", quality, QUALITIES)
+    _check_quality(pair, quality)
     return f"{NAMESPACE}/{task_slug(pair.name)}/{quality}-v{version}"
 
 
@@ -77,9 +96,9 @@ def parse_dataset_id(dataset_id: str) -> tuple[TaskPair, Quality, int]:
     slugs = {task_slug(name): name for name in TASKS}
     if match["slug"] not in slugs:
         raise UnknownNameError("dataset task", match["slug"], slugs)
-    if match["quality"] not in QUALITIES:
-        raise UnknownNameError("dataset quality", match["quality"], QUALITIES)
-    return TASKS[slugs[match["slug"]]], match["quality"], int(match["version"])  # type: ignore[return-value]
+    pair = TASKS[slugs[match["slug"]]]
+    _check_quality(pair, match["quality"])
+    return pair, match["quality"], int(match["version"])  # type: ignore[return-value]
 
 
 def task_sha256(pair: TaskPair) -> str:
@@ -104,22 +123,28 @@ def sac_policy_path(pair: TaskPair, role: Literal["sac-source", "sac-target"]) -
     return f"assets/policies/{role}/{dynamics_label(pair, side)}.safetensors"
 
 
+BEHAVIOUR_KINDS = ("uniform-random", "policy", "human-operator")
+
+
 @dataclasses.dataclass(frozen=True)
 class Behaviour:
     """What acts in the target while the data is collected.
 
-    ``kind`` is ``uniform-random`` or ``policy``; later kinds (a scripted controller for the
-    wheel-legged robot's human-operator data) add a value here, not a new recipe format.
+    ``kind`` is ``uniform-random``, ``policy``, or ``human-operator`` (the wheel-legged robot's
+    balancing controller steered by an imperfect person, seeded from the recipe:
+    ``offdyn_bench/wheel_legged/operator.py``).
     """
 
-    kind: Literal["uniform-random", "policy"]
+    kind: Literal["uniform-random", "policy", "human-operator"]
     policy: str | None = None
     policy_sha256: str | None = None
     action_noise_std: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.kind not in ("uniform-random", "policy"):
-            raise UnknownNameError("behaviour kind", self.kind, ("uniform-random", "policy"))
+        if self.kind not in BEHAVIOUR_KINDS:
+            raise UnknownNameError("behaviour kind", self.kind, BEHAVIOUR_KINDS)
+        if self.kind == "human-operator" and self.policy is not None:
+            raise RecipeError("a 'human-operator' behaviour is the operator in code; it takes no policy file")
         if self.kind == "policy" and not self.policy:
             raise RecipeError("a 'policy' behaviour needs the path of its .safetensors file")
         if not self.action_noise_std >= 0:
@@ -242,8 +267,11 @@ def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,
     """The recipe this suite uses for ``task`` at ``quality`` (any task of the grid)."""
     pair = task if isinstance(task, TaskPair) else get_task(task)
     ident = dataset_id(pair, quality, version)
+    _check_quality(pair, quality)
     if quality == "random":
         behaviour = Behaviour(kind="uniform-random")
+    elif quality == "human-operator":
+        behaviour = Behaviour(kind="human-operator")
     else:
         behaviour = Behaviour(kind="policy", policy=sac_policy_path(pair, "sac-source"),
                               action_noise_std=DEFAULT_ACTION_NOISE_STD)
