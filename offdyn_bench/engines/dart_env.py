@@ -23,9 +23,11 @@ What DART does differently from MuJoCo on these models (the engine gap):
 - the floor is a 400 m wide, 1 m thick box (MuJoCo: an infinite plane).
 
 Every ``reset`` info carries ``state`` and every ``step`` info ``prev_state`` and ``state``, like the
-MuJoCo envs of this suite, but the vector is DART's: ``[time, qpos (nq), qvel (nv)]`` in MuJoCo's
-coordinates. It is DART's full state for these models (the contact solver keeps nothing between
-steps), so :meth:`set_full_state` restores it exactly and a recorded step replays bit for bit.
+MuJoCo envs of this suite: ``[time, qpos (nq), qvel (nv)]``. DART's generalized coordinates are
+MuJoCo's, so this is DART's full state for these models (its contact solver keeps nothing between
+steps) *and* the layout of MuJoCo's ``mjSTATE_FULLPHYSICS`` for them (no actuator activations):
+:meth:`set_full_state` restores a DART env exactly (a recorded step replays bit for bit), and a DART
+state restarts the MuJoCo source at the same place, which is what gap diagnosis does.
 """
 
 from __future__ import annotations
@@ -128,9 +130,8 @@ def _on_dart(base: type) -> type:
             """Restore a ``[time, qpos, qvel]`` state taken from this env's ``info``."""
             state = np.asarray(state, dtype=float)
             if state.shape != (self.state_size,):
-                raise OffdynError(f"expected a DART state [time, qpos ({self.model.nq}), qvel ({self.model.nv})] of "
-                                  f"shape ({self.state_size},), got {state.shape}; MuJoCo physics states do not "
-                                  "apply to DART envs")
+                raise OffdynError(f"expected a state [time, qpos ({self.model.nq}), qvel ({self.model.nv})] of shape "
+                                  f"({self.state_size},) for {type(self).__name__}, got {state.shape}")
             nq = self.model.nq
             self._write_state(state[0], state[1:1 + nq], state[1 + nq:])
 

@@ -77,13 +77,13 @@ def _detector(name: str):
 class DartWorld:
     """A DART world of one MJCF robot and its floor, with the map between MuJoCo and DART coordinates.
 
-    DART's generalized positions are ``qpos - qpos0`` (the parser puts a joint's ``ref`` into the
-    joint frame), in MuJoCo's joint order; velocities are the same numbers in both engines.
+    DART's generalized positions and velocities are MuJoCo's ``qpos`` and ``qvel`` (the same
+    numbers, no offset: a state read and written back is bit for bit the same); ``dof_indices`` maps
+    MuJoCo's joint order to DART's dof order.
     """
 
     world: object  # dartpy.simulation.World
     robot: object  # dartpy.dynamics.Skeleton
-    qpos0: np.ndarray
     dof_indices: np.ndarray  # DART dof index of each MuJoCo joint, in MuJoCo order
     actuator_dofs: np.ndarray  # DART dof index each actuator drives
     gear: np.ndarray
@@ -98,13 +98,13 @@ class DartWorld:
     def set_qpos_qvel(self, qpos: np.ndarray, qvel: np.ndarray) -> None:
         positions = np.zeros(self.robot.getNumDofs())
         velocities = np.zeros(self.robot.getNumDofs())
-        positions[self.dof_indices] = qpos - self.qpos0
+        positions[self.dof_indices] = qpos
         velocities[self.dof_indices] = qvel
         self.robot.setPositions(positions)
         self.robot.setVelocities(velocities)
 
     def qpos(self) -> np.ndarray:
-        return np.asarray(self.robot.getPositions())[self.dof_indices] + self.qpos0
+        return np.asarray(self.robot.getPositions())[self.dof_indices]
 
     def qvel(self) -> np.ndarray:
         return np.asarray(self.robot.getVelocities())[self.dof_indices]
@@ -185,16 +185,16 @@ def build_dart_world(xml_path: str, model: mujoco.MjModel, collision_detector: s
     armature_damping = np.zeros(robot.getNumDofs())
     if emulate_armature:
         armature_damping[dof_indices] = model.dof_armature / model.opt.timestep
+    _absorb_reference_positions(model, robot, joint_names)
     for j, name in enumerate(joint_names):
         dof = robot.getDof(int(dof_indices[j]))
-        ref = float(model.qpos0[model.jnt_qposadr[j]])
         dof.setDampingCoefficient(float(model.dof_damping[j]) + float(armature_damping[dof_indices[j]]))
         dof.setCoulombFriction(float(model.dof_frictionloss[j]))
         dof.setSpringStiffness(float(model.jnt_stiffness[j]))
-        dof.setRestPosition(float(model.qpos_spring[model.jnt_qposadr[j]]) - ref)
+        dof.setRestPosition(float(model.qpos_spring[model.jnt_qposadr[j]]))
         if model.jnt_limited[j]:
             low, high = model.jnt_range[j]
-            dof.setPositionLimits((float(low) - ref, float(high) - ref))
+            dof.setPositionLimits((float(low), float(high)))
             robot.getJoint(name).setLimitEnforcement(True)  # the parser names 1-dof joints as their dof
         else:
             dof.setPositionLimits((-np.inf, np.inf))
@@ -217,9 +217,29 @@ def build_dart_world(xml_path: str, model: mujoco.MjModel, collision_detector: s
     actuator_dofs = np.array([dof_indices[model.actuator_trnid[a, 0]] for a in range(model.nu)], dtype=int)
     ctrl_range = np.where(model.actuator_ctrllimited[:, None].astype(bool), model.actuator_ctrlrange,
                           np.array([-np.inf, np.inf]))
-    return DartWorld(world=world, robot=robot, qpos0=np.array(model.qpos0), dof_indices=dof_indices,
+    return DartWorld(world=world, robot=robot, dof_indices=dof_indices,
                      actuator_dofs=actuator_dofs, gear=np.array(model.actuator_gear[:, 0]), ctrl_range=ctrl_range,
                      collision_detector=collision_detector, armature_damping=armature_damping)
+
+
+def _absorb_reference_positions(model: mujoco.MjModel, robot, joint_names: list[str]) -> None:
+    """The parser measures a joint from its MJCF ``ref`` (Hopper's ``rootz`` starts at 0 in DART,
+    1.25 in MuJoCo). Moving ``ref`` into the joint's parent frame makes DART's coordinates MuJoCo's,
+    so states convert without a rounding step."""
+    import dartpy
+
+    for j, name in enumerate(joint_names):
+        ref = float(model.qpos0[model.jnt_qposadr[j]])
+        if ref == 0.0:
+            continue
+        joint = robot.getJoint(name)
+        axis = np.asarray(joint.getAxis(), dtype=float)
+        offset = dartpy.math.Isometry3()
+        if int(model.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_SLIDE):
+            offset.set_translation(-ref * axis)
+        else:
+            offset.set_rotation(dartpy.math.AngleAxis(-ref, axis).to_rotation_matrix())
+        joint.setTransformFromParentBodyNode(joint.getTransformFromParentBodyNode().multiply(offset))
 
 
 def _moment_entries(inertia: np.ndarray) -> tuple[float, ...]:
@@ -276,7 +296,7 @@ def _check_kinematics(model: mujoco.MjModel, robot, dof_indices: np.ndarray, xml
     data.qpos[:] = model.qpos0 + rng.uniform(-0.3, 0.3, model.nq)
     mujoco.mj_kinematics(model, data)
     positions = np.zeros(robot.getNumDofs())
-    positions[dof_indices] = data.qpos - model.qpos0
+    positions[dof_indices] = data.qpos
     saved = np.asarray(robot.getPositions()).copy()
     robot.setPositions(positions)
     try:
