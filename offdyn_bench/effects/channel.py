@@ -11,15 +11,17 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import gymnasium
-import mujoco
 import numpy as np
 
 from offdyn_bench.effects.base import Effect, Interval
 from offdyn_bench.effects.model import actuator_ids
 from offdyn_bench.errors import OffdynError
+
+if TYPE_CHECKING:  # MuJoCo loads when a model is built (see effects.model), not on import
+    import mujoco
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

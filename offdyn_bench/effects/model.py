@@ -12,13 +12,28 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Iterable, Sequence
-from typing import ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
-import mujoco
 import numpy as np
 
 from offdyn_bench.effects.base import Effect, Interval, OneOf
 from offdyn_bench.errors import OffdynError, UnknownNameError
+
+if TYPE_CHECKING:
+    import mujoco
+else:
+    class _LazyMujoco:
+        """MuJoCo, imported on first use. Declaring effects (``import offdyn_bench`` builds and
+        registers the task grid) needs no physics engine, and importing MuJoCo costs a command
+        line's start-up about a tenth of a second (it loads its GLFW library)."""
+
+        def __getattr__(self, name: str) -> Any:
+            import mujoco as module
+
+            globals()["mujoco"] = module  # later look-ups find the module itself
+            return getattr(module, name)
+
+    mujoco = _LazyMujoco()
 
 
 # --- name resolution on a compiled model ------------------------------------------------------
@@ -67,15 +82,14 @@ def joint_ids(model: mujoco.MjModel, target: str | None) -> np.ndarray:
     return np.array([i])
 
 
-_JOINT_DOFS = {mujoco.mjtJoint.mjJNT_FREE: 6, mujoco.mjtJoint.mjJNT_BALL: 3,
-               mujoco.mjtJoint.mjJNT_SLIDE: 1, mujoco.mjtJoint.mjJNT_HINGE: 1}
+_JOINT_DOFS = {"mjJNT_FREE": 6, "mjJNT_BALL": 3, "mjJNT_SLIDE": 1, "mjJNT_HINGE": 1}
 
 
 def dof_ids(model: mujoco.MjModel, target: str | None) -> np.ndarray:
     dofs: list[int] = []
     for j in joint_ids(model, target):
         start = model.jnt_dofadr[j]
-        dofs.extend(range(start, start + _JOINT_DOFS[mujoco.mjtJoint(model.jnt_type[j])]))
+        dofs.extend(range(start, start + _JOINT_DOFS[mujoco.mjtJoint(model.jnt_type[j]).name]))
     return np.array(dofs, dtype=int)
 
 
@@ -398,10 +412,10 @@ class ContactSolimp(ModelEffect):
             model.pair_solimp[:] = values
 
 
-_CONES = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}
-_INTEGRATORS = {"Euler": mujoco.mjtIntegrator.mjINT_EULER, "RK4": mujoco.mjtIntegrator.mjINT_RK4,
-                "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
-                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
+# Names of mujoco.mjtCone / mujoco.mjtIntegrator members, looked up when an effect is applied.
+_CONES = {"pyramidal": "mjCONE_PYRAMIDAL", "elliptic": "mjCONE_ELLIPTIC"}
+_INTEGRATORS = {"Euler": "mjINT_EULER", "RK4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT",
+                "implicitfast": "mjINT_IMPLICITFAST"}
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -416,7 +430,7 @@ class FrictionCone(ModelEffect):
     cone: str
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
-        model.opt.cone = _CONES[self.cone]
+        model.opt.cone = getattr(mujoco.mjtCone, _CONES[self.cone])
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -431,7 +445,7 @@ class Integrator(ModelEffect):
     integrator: str
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
-        model.opt.integrator = _INTEGRATORS[self.integrator]
+        model.opt.integrator = getattr(mujoco.mjtIntegrator, _INTEGRATORS[self.integrator])
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
