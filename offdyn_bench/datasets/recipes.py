@@ -287,9 +287,12 @@ def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,
 def default_tasks() -> list[TaskPair]:
     """The default set: one level of every shift family for each locomotion robot (the middle
     of the grid: x0.5 scales, the first part at ``medium``, action noise 0.5), plus every H2O
-    setting. Everything else in the grid builds on demand."""
+    setting, and both wheel-legged tasks. Everything else in the grid builds on demand."""
     chosen = []
     for pair in TASKS.values():
+        if pair.robot in HUMAN_OPERATOR_ROBOTS:
+            chosen.append(pair)
+            continue
         if pair.robot not in ("Ant", "HalfCheetah", "Hopper", "Walker2d"):
             continue
         first_part = next((p.part for p in TASKS.values() if p.robot == pair.robot and p.shift == pair.shift), None)
@@ -303,4 +306,4 @@ def default_tasks() -> list[TaskPair]:
 
 
 def default_recipes() -> list[Recipe]:
-    return [default_recipe(pair, quality) for pair in default_tasks() for quality in QUALITIES]
+    return [default_recipe(pair, quality) for pair in default_tasks() for quality in qualities_of(pair)]
