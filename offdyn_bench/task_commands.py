@@ -10,7 +10,6 @@ import typer
 
 from offdyn_bench.effects.model import ModelEffect
 from offdyn_bench.errors import OffdynError, UnknownNameError
-from offdyn_bench.model_diff import model_differences
 from offdyn_bench.robots import get_robot
 from offdyn_bench.tasks import SIDES, TASKS, TaskPair, get_task
 
@@ -40,7 +39,9 @@ def plain_text(docstring_line: str) -> str:
 
 def describe_pair(pair: TaskPair) -> str:
     """The pair's effects and the compiled differences of each side from the robot's base model."""
+    # Here, not at the top: listing tasks (and the CLI's help) needs neither MuJoCo nor the envs.
     from offdyn_bench.envs import ENV_CLASSES
+    from offdyn_bench.model_diff import model_differences
 
     robot = get_robot(pair.robot)
     lines = [f"{pair.name}  (version {pair.version})", f"  {pair.description}" if pair.description else "",

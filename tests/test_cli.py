@@ -80,3 +80,19 @@ def test_version_prints_the_suite_and_its_libraries():
     assert lines[0] == "offdyn-bench 0.1.0"
     assert lines[1:] == [f"{name} {metadata.version(name)}" for name in ("mujoco", "gymnasium", "minari", "torch")]
     assert version_lines() == lines
+
+
+def test_help_does_not_even_load_mujoco():
+    """Loading MuJoCo (and its GLFW library) is about a quarter of the CLI's start-up CPU time;
+    declaring and registering effects does not need it, so help does not pay for it."""
+    code = """
+        import sys
+        from offdyn_bench.cli import app
+        for args in (["--help"], ["tasks", "list", "--help"]):
+            try:
+                app(args, standalone_mode=False)
+            except SystemExit:
+                pass
+        assert "mujoco" not in sys.modules, "help imported mujoco"
+    """
+    _modules_after(code)
