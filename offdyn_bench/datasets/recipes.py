@@ -107,8 +107,10 @@ def task_sha256(pair: TaskPair) -> str:
 
 
 def dynamics_label(pair: TaskPair, side: Literal["source", "target"]) -> str:
-    """Name of the dynamics a policy was trained in: pairs with a nominal side share it."""
-    return f"{pair.robot.lower()}-nominal" if not pair.effects(side) else f"{pair.name}-{side}"
+    """Name of the dynamics a policy was trained in: pairs with a nominal side share it (a side on
+    another engine, e.g. DART, is not nominal even without effects)."""
+    nominal = not pair.effects(side) and pair.engine(side) == "mujoco"
+    return f"{pair.robot.lower()}-nominal" if nominal else f"{pair.name}-{side}"
 
 
 def sac_policy_path(pair: TaskPair, role: Literal["sac-source", "sac-target"]) -> str:
