@@ -78,7 +78,7 @@ from baselines.limits import POSITIVE, Limit, integer, layer_sizes, number, one_
 from baselines.method import MethodContext
 from baselines.networks import Params, init_mlp, mlp
 from baselines.sac import Metrics, seed_generator
-from baselines.trpo import TRPOAgent, TRPOConfig, gae
+from baselines.trpo import TRPOAgent, TRPOConfig, gae, on_device
 from offdyn_bench.errors import OffdynError
 
 Variant = Literal["matl", "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning"]
@@ -184,11 +184,11 @@ class Rollout:
 
     FIELDS = ("observations", "actions", "rewards", "next_observations", "terminations")
 
-    def __init__(self, n_seeds: int, length: int, observation_dim: int, action_dim: int) -> None:
+    def __init__(self, n_seeds: int, length: int, observation_dim: int, action_dim: int, device: str = "cpu") -> None:
         self.length = length
         shapes = {"observations": (observation_dim,), "actions": (action_dim,), "rewards": (),
                   "next_observations": (observation_dim,), "terminations": ()}
-        self.storage = {k: torch.zeros((n_seeds, length, *shape)) for k, shape in shapes.items()}
+        self.storage = {k: torch.zeros((n_seeds, length, *shape), device=device) for k, shape in shapes.items()}
         self.size = 0
 
     def add(self, observations: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
@@ -254,11 +254,11 @@ def state_sequences(observations: torch.Tensor, next_observations: torch.Tensor,
     A state past the end of ``s_t``'s episode in the rollout is replaced by that episode's last state
     (the next state of its last transition)."""
     n_seeds, length = episode_ends.shape
-    steps = torch.arange(length).expand(n_seeds, length)
+    steps = torch.arange(length, device=episode_ends.device).expand(n_seeds, length)
     end_marks = torch.where(episode_ends > 0, steps, torch.full_like(steps, length))
     # Index of the last transition of each step's episode: the nearest end mark at or after it.
     episode_end = torch.flip(torch.cummin(torch.flip(end_marks, [1]), dim=1).values, [1])
-    seeds = torch.arange(n_seeds)[:, None]
+    seeds = torch.arange(n_seeds, device=episode_ends.device)[:, None]
     parts = []
     for offset in offsets:
         index = steps + offset
@@ -275,10 +275,10 @@ def state_sequences(observations: torch.Tensor, next_observations: torch.Tensor,
 class Discriminator:
     """``D(zeta)`` = P(simulator | zeta), one network per seed (members ``[S]``)."""
 
-    def __init__(self, input_dim: int, seeds: Sequence[int], config: DiscriminatorConfig) -> None:
+    def __init__(self, input_dim: int, seeds: Sequence[int], config: DiscriminatorConfig, device: str = "cpu") -> None:
         self.config = config
-        self.params: Params = init_mlp([seed_generator(1_000_003 * 3 + 7_919 * s + 29) for s in seeds],
-                                       [input_dim, *config.hidden_sizes, 1])
+        self.params: Params = on_device(init_mlp([seed_generator(1_000_003 * 3 + 7_919 * s + 29) for s in seeds],
+                                                 [input_dim, *config.hidden_sizes, 1]), torch.device(device))
         self.optimizer = torch.optim.Adam(self.params, lr=config.lr, foreach=True)
 
     def logits(self, sequences: torch.Tensor) -> torch.Tensor:
@@ -286,7 +286,7 @@ class Discriminator:
 
     def update(self, simulator: torch.Tensor, robot: torch.Tensor) -> Metrics:
         """``config.steps`` full-batch steps on Eq. 2: simulator sequences label 1, robot label 0."""
-        loss = torch.zeros(simulator.shape[0])
+        loss = torch.zeros(simulator.shape[0], device=simulator.device)
         for _ in range(self.config.steps):
             # -(log D(sim) + log(1 - D(robot))), the mean over each side, per seed.
             loss = -(F.logsigmoid(self.logits(simulator)).mean(dim=1) + F.logsigmoid(-self.logits(robot)).mean(dim=1))
@@ -371,6 +371,7 @@ class MATL:
         self.variant = config.variant
         obs_dim, act_dim, seeds = context.observation_dim, context.action_dim, context.seeds
         n_seeds = len(seeds)
+        device = getattr(context, "device", "cpu")
         self.robot_name = _robot_of(context.task)
         check_target_reward(config.target_reward, self.robot_name)
         uses_simulator = self.variant in SIMULATOR_RUNS
@@ -380,16 +381,17 @@ class MATL:
         self.target_step_every: int | None = config.target_step_every if uses_robot else None
         # Streams 1 and 2 in every variant: independent's robot is MATL's robot without the
         # auxiliary reward, direct-transfer's simulator agent is MATL's simulator agent.
-        self.simulator = TRPOAgent(obs_dim, act_dim, seeds, config.trpo, stream=1) if uses_simulator else None
-        self.robot = TRPOAgent(obs_dim, act_dim, seeds, config.trpo, stream=2) if uses_robot else None
-        self.simulator_rollout = Rollout(n_seeds, config.rollout_steps, obs_dim, act_dim) if uses_simulator else None
-        self.robot_rollout = Rollout(n_seeds, config.rollout_steps, obs_dim, act_dim) if uses_robot else None
+        self.simulator = TRPOAgent(obs_dim, act_dim, seeds, config.trpo, 1, device) if uses_simulator else None
+        self.robot = TRPOAgent(obs_dim, act_dim, seeds, config.trpo, 2, device) if uses_robot else None
+        self.simulator_rollout = Rollout(n_seeds, config.rollout_steps, obs_dim, act_dim, device) \
+            if uses_simulator else None
+        self.robot_rollout = Rollout(n_seeds, config.rollout_steps, obs_dim, act_dim, device) if uses_robot else None
         extra = config.sequence_extra_states
         if extra is None:
             extra = 0 if self.robot_name in SINGLE_STATE_ROBOTS or self.robot_name is None else 1
         self.sequence_offsets = tuple(j * config.sequence_stride for j in range(extra + 1))
-        self.discriminator = Discriminator(obs_dim * len(self.sequence_offsets), seeds, config.discriminator) \
-            if self.aligned else None
+        self.discriminator = Discriminator(obs_dim * len(self.sequence_offsets), seeds, config.discriminator,
+                                           device) if self.aligned else None
         self.simulator_rollouts_done = 0
         self.last_metrics: Metrics = {}
         if self.variant in PRETRAINED_VARIANTS:

@@ -137,6 +137,11 @@ def gaussian_log_prob(mean: torch.Tensor, log_std: torch.Tensor, actions: torch.
 # --- the learner --------------------------------------------------------------------------------
 
 
+def on_device(params: Params, device: torch.device) -> Params:
+    """Leaf parameters on ``device`` (a no-op copy-free move on the CPU)."""
+    return [p.detach().to(device).requires_grad_() for p in params]
+
+
 def _flat(tensors: Sequence[torch.Tensor], n_seeds: int) -> torch.Tensor:
     """Per-seed flat vector ``[S, P]`` of member-stacked tensors."""
     return torch.cat([t.reshape(n_seeds, -1) for t in tensors], dim=1)
@@ -156,16 +161,18 @@ class TRPOAgent:
     """
 
     def __init__(self, observation_dim: int, action_dim: int, seeds: Sequence[int], config: TRPOConfig,
-                 stream: int) -> None:
-        self.config = config
+                 stream: int, device: str = "cpu") -> None:
+        self.config, self.device = config, torch.device(device)
         self.n_seeds, self.action_dim = len(seeds), action_dim
         hidden = list(config.hidden_sizes)
         inits = [seed_generator(1_000_003 * stream + 7_919 * s + 17) for s in seeds]
-        self.mean_params: Params = init_mlp(inits, [observation_dim, *hidden, action_dim])
-        self.log_std = torch.full((self.n_seeds, 1, action_dim), float(config.initial_log_std), requires_grad=True)
-        self.value_params: Params = init_mlp(inits, [observation_dim, *hidden, 1])
+        # Initial weights are drawn on the CPU, so a seed starts from the same weights on every device.
+        self.mean_params: Params = on_device(init_mlp(inits, [observation_dim, *hidden, action_dim]), self.device)
+        self.log_std = torch.full((self.n_seeds, 1, action_dim), float(config.initial_log_std), device=self.device,
+                                  requires_grad=True)
+        self.value_params: Params = on_device(init_mlp(inits, [observation_dim, *hidden, 1]), self.device)
         self.value_optimizer = torch.optim.Adam(self.value_params, lr=config.value_lr, foreach=True)
-        self.generator = seed_generator(104_729 * stream + seeds[0])
+        self.generator = torch.Generator(device=self.device).manual_seed(104_729 * stream + seeds[0])
 
     @property
     def policy_params(self) -> Params:
@@ -237,8 +244,8 @@ class TRPOAgent:
         # Backtracking, per seed: the first shrink factor whose step improves the surrogate within
         # the trust region; a seed with none keeps its policy.
         old_flat = _flat(old, n)
-        chosen = torch.zeros(n)
-        found = torch.zeros(n, dtype=torch.bool)
+        chosen = torch.zeros(n, device=self.device)
+        found = torch.zeros(n, dtype=torch.bool, device=self.device)
         with torch.no_grad():
             for k in range(config.max_backtracks + 1):
                 fraction = config.backtrack_ratio ** k
@@ -257,7 +264,7 @@ class TRPOAgent:
                 "trpo/log_std": self.log_std.detach().mean(dim=(1, 2))}
 
     def value_step(self, observations: torch.Tensor, value_targets: torch.Tensor) -> Metrics:
-        loss = torch.zeros(self.n_seeds)
+        loss = torch.zeros(self.n_seeds, device=self.device)
         for _ in range(self.config.value_iterations):
             loss = (tanh_mlp(self.value_params, observations)[..., 0] - value_targets).pow(2).mean(dim=1)
             self.value_optimizer.zero_grad(set_to_none=True)
