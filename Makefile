@@ -33,4 +33,5 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_diagnose.py
 	$(PY) benchmarks/bench_datasets.py
 	$(PY) benchmarks/bench_statistics.py
+	$(PY) benchmarks/bench_cli_startup.py --repeats 11
 	$(PY) -m pytest -q -m benchmark --benchmark-enable
