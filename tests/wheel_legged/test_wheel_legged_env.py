@@ -186,3 +186,19 @@ def test_pairs_are_named_by_task_and_pass_the_task_to_the_env():
     kinds = {e.kind for e in pair.target_effects}
     assert {"action_deadzone", "frictionloss", "friction", "obs_delay", "obs_noise"} <= kinds
     assert not pair.source_effects
+
+
+def test_tasks_show_prints_both_sides_and_the_model_diff():
+    from typer.testing import CliRunner
+
+    from offdyn_bench.cli import app
+
+    result = CliRunner().invoke(app, ["tasks", "show", "wheellegged-standstill"])
+    assert result.exit_code == 0, result.output
+    assert "source: offdyn/WheelLegged-standstill-source-v0" in result.output
+    assert "action_deadzone(threshold=0.05) on wheel_motors" in result.output
+    assert "dof_frictionloss[wheel_axle]: 0 -> 0.04" in result.output
+    assert "geom_friction[left_wheel]: [0.9 0.005 0.0001] -> [0.36 0.002 4e-05]  (x0.4)" in result.output
+    listed = CliRunner().invoke(app, ["tasks", "list", "--robot", "wheellegged"])
+    assert listed.exit_code == 0, listed.output
+    assert "wheellegged-standstill" in listed.output and "wheellegged-movestraight" in listed.output
