@@ -57,9 +57,12 @@ the two aligned rollouts; the auxiliary reward of step t uses ``zeta_t``, which 
 paper's ``rho(s_t)``). With ``alignment_weight=0`` MATL is exactly ``independent`` plus
 ``direct-transfer`` side by side (a test checks this).
 
-Two properties of the confusion rewards are worth knowing: ``rho_R <= 0`` on every step, so in a
-task whose episodes end on a fall it also acts as a per-step cost that shortening the episode
-avoids; ``rho_S >= 0`` acts as a survival bonus.
+Two properties of the paper's rewards matter in tasks whose episodes end on a fall: ``rho_R = log D
+<= 0`` on every step, so it is also a per-step cost that the robot avoids by falling early (on
+InvertedPendulum with the uninformative reward the robot agent learns exactly that; see README), and
+``rho_S >= 0`` is a survival bonus. The extra ``robot_reward_form="nonnegative"`` rewards the robot
+with ``-log(1 - D) >= 0`` instead: the same preference for simulator-like states (both increase with
+D), without the incentive to end the episode (GAIL's reward form). ``paper`` is the default.
 """
 
 from __future__ import annotations
@@ -146,6 +149,8 @@ class Config:
     """T: steps per seed of each rollout (one TRPO batch), the same for both agents."""
     target_step_every: int = 10
     """One target step per this many source steps (the online-target track's ratio); M = this - 1."""
+    robot_reward_form: str = "paper"
+    """``paper``: rho_R = log D (Eq. 5); ``nonnegative``: -log(1 - D), an extra: see the module docstring."""
     target_reward: str = "full"
     """The robot's reward: full, sparse, uninformative or none (see the module docstring)."""
     sequence_stride: int = 4
@@ -158,6 +163,7 @@ class Config:
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "variant": one_of(*VARIANTS), "alignment_weight": number(0.0), "rollout_steps": integer(1),
+        "robot_reward_form": one_of("paper", "nonnegative"),
         "target_step_every": integer(1), "target_reward": one_of(*TARGET_REWARDS), "sequence_stride": integer(1),
         "sequence_extra_states": optional(integer(0)), "init_run": _path_or_empty()}
 
@@ -165,6 +171,21 @@ class Config:
     def target_data(self) -> str:
         """What the trainer reads to count target steps: "online" unless the variant takes none."""
         return "none" if self.variant == "direct-transfer" else "online"
+
+    def budget_warnings(self, algo: str, steps: int) -> list[str]:
+        """What a budget of ``steps`` training steps is too short for (the trainer prints these)."""
+        if self.variant == "direct-transfer":
+            if steps < self.rollout_steps:
+                return [f"--steps {steps} is below rollout_steps={self.rollout_steps}: this {algo} run makes no "
+                        f"update and deploys its initial policy; the minimum useful budget is {self.rollout_steps} "
+                        "steps (or lower it with --set rollout_steps=N)"]
+            return []
+        iteration = self.rollout_steps * self.target_step_every
+        if steps < iteration:
+            return [f"--steps {steps} is below one outer iteration (rollout_steps x target_step_every = "
+                    f"{iteration} steps): this {algo} run's robot agent makes no update and deploys its initial "
+                    f"policy; the minimum useful budget is {iteration} steps (or lower it with --set rollout_steps=N)"]
+        return []
 
     def cross_checks(self) -> list[str]:
         if self.variant in PRETRAINED_VARIANTS and not self.init_run:
@@ -318,14 +339,21 @@ class Discriminator:
         load_optimizer_tensors(self.optimizer, state, f"{prefix}.optimizer")
 
 
-def simulator_auxiliary_reward(log_d: torch.Tensor) -> torch.Tensor:
-    """rho_S = -log D(zeta): the simulator agent is rewarded where it looks like the robot."""
-    return -log_d
+def simulator_auxiliary_reward(logits: torch.Tensor) -> torch.Tensor:
+    """rho_S = -log D(zeta) (Eq. 4) from the discriminator's logits: the simulator agent is rewarded
+    where it looks like the robot. Always >= 0."""
+    return -F.logsigmoid(logits)
 
 
-def robot_auxiliary_reward(log_d: torch.Tensor) -> torch.Tensor:
-    """rho_R = +log D(zeta): the robot agent is rewarded where it looks like the simulator."""
-    return log_d
+def robot_auxiliary_reward(logits: torch.Tensor, form: str = "paper") -> torch.Tensor:
+    """The robot agent's reward for looking like the simulator, from the discriminator's logits:
+    ``paper``: rho_R = log D(zeta) (Eq. 5, always <= 0); ``nonnegative``: -log(1 - D(zeta)) (the
+    same preference, always >= 0, so it never rewards ending an episode early)."""
+    if form == "paper":
+        return F.logsigmoid(logits)
+    if form == "nonnegative":
+        return -F.logsigmoid(-logits)
+    raise ValueError(f"robot_reward_form must be 'paper' or 'nonnegative', got {form!r}")
 
 
 # --- the robot's reward modes -------------------------------------------------------------------
@@ -477,8 +505,9 @@ class MATL:
         weight = self.config.alignment_weight
         sim_sequences, robot_sequences = self.sequences(sim), self.sequences(robot)
         metrics = self.discriminator.update(sim_sequences, robot_sequences)
-        rho_s = simulator_auxiliary_reward(self.discriminator.log_simulator_probability(sim_sequences))
-        rho_r = robot_auxiliary_reward(self.discriminator.log_simulator_probability(robot_sequences))
+        with torch.no_grad():
+            rho_s = simulator_auxiliary_reward(self.discriminator.logits(sim_sequences))
+            rho_r = robot_auxiliary_reward(self.discriminator.logits(robot_sequences), self.config.robot_reward_form)
         sim_rewards = sim.rewards + weight * rho_s if self.variant != "matl-u" else sim.rewards
         robot_rewards = robot.rewards + weight * rho_r
         metrics |= {"matl/simulator_auxiliary_reward": rho_s.mean(dim=1),

@@ -189,7 +189,11 @@ def _check_arguments(**arguments: int | None) -> None:
 
 def budget_warnings(algo: str, config: Any, steps: int) -> list[str]:
     """What a budget of ``steps`` is too short for. ``random_steps`` (no update before it) and
-    ``warmup_steps`` (no reward correction before it) mean the same in every config that has them."""
+    ``warmup_steps`` (no reward correction before it) mean the same in every config that has them.
+    A config with a ``budget_warnings(algo, steps)`` method (MATL's on-policy batches) says its own."""
+    own_warnings = getattr(config, "budget_warnings", None)
+    if own_warnings is not None:
+        return own_warnings(algo, steps)
     random_steps = getattr(config, "random_steps", 0)
     warmup_steps = getattr(config, "warmup_steps", None)
     if steps <= random_steps:

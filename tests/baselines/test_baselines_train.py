@@ -30,7 +30,7 @@ def _tiny(algo: str) -> dict[str, str]:
     if algo in ("sac-source", "sac-target", "h2o"):
         return {k: v for k, v in TINY.items() if k != "warmup_steps"}
     if ALGORITHMS[algo].default_config().__module__ == "baselines.matl":  # TRPO-based: no SAC settings
-        return {"trpo.hidden_sizes": "[32, 32]", "rollout_steps": "20"}
+        return {"trpo.hidden_sizes": "[32, 32]", "rollout_steps": "8"}  # 80 steps: one outer iteration
     return TINY
 
 

@@ -141,10 +141,17 @@ def test_the_discriminator_separates_two_state_distributions_and_rewards_each_ag
     log_d_sim = discriminator.log_simulator_probability(simulator_states)  # D predicts "simulator"
     log_d_robot = discriminator.log_simulator_probability(robot_states)
     assert (log_d_sim > np.log(0.9)).all() and (log_d_robot < np.log(0.1)).all()
-    # The robot agent is rewarded for simulator-like states, the simulator agent for robot-like ones.
-    assert robot_auxiliary_reward(log_d_sim).min() > robot_auxiliary_reward(log_d_robot).max()
-    assert simulator_auxiliary_reward(log_d_robot).min() > simulator_auxiliary_reward(log_d_sim).max()
-    assert (robot_auxiliary_reward(log_d_robot) <= 0).all() and (simulator_auxiliary_reward(log_d_sim) >= 0).all()
+    sim_logits, robot_logits = discriminator.logits(simulator_states).detach(), discriminator.logits(robot_states).detach()
+    # The paper's rewards: rho_S = -log D, rho_R = +log D.
+    assert torch.allclose(simulator_auxiliary_reward(sim_logits), -log_d_sim)
+    assert torch.allclose(robot_auxiliary_reward(robot_logits), log_d_robot)
+    # Each agent is rewarded for looking like the other system: the robot for simulator-like states,
+    # the simulator for robot-like ones (in both robot forms).
+    for form in ("paper", "nonnegative"):
+        assert robot_auxiliary_reward(sim_logits, form).min() > robot_auxiliary_reward(robot_logits, form).max()
+    assert simulator_auxiliary_reward(robot_logits).min() > simulator_auxiliary_reward(sim_logits).max()
+    assert (robot_auxiliary_reward(robot_logits) <= 0).all() and (simulator_auxiliary_reward(sim_logits) >= 0).all()
+    assert (robot_auxiliary_reward(robot_logits, "nonnegative") >= 0).all()
 
 
 # --- target reward modes ------------------------------------------------------------------------
@@ -236,6 +243,18 @@ def test_a_killed_matl_run_resumes_to_the_same_result(tmp_path):
         [{k: c[k] for k in ("target_return", "train")} for c in curves[1]]
     a, b = _state(tmp_path / "whole"), _state(tmp_path / "cut")
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_budget_below_one_outer_iteration_is_warned_about():
+    from baselines.train import budget_warnings
+
+    assert budget_warnings("matl", Config(), 10_000) == []
+    (message,) = budget_warnings("independent", Config(variant="independent"), 9_999)
+    assert message.startswith("--steps 9999 is below one outer iteration (rollout_steps x target_step_every = "
+                              "10000 steps): this independent run's robot agent makes no update")
+    assert budget_warnings("direct-transfer", Config(variant="direct-transfer"), 1_000) == []
+    assert "is below rollout_steps=1000" in budget_warnings("direct-transfer", Config(variant="direct-transfer"),
+                                                            999)[0]
 
 
 def test_the_variant_is_fixed_by_the_algorithms_name(tmp_path):
