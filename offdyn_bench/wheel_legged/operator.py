@@ -111,6 +111,14 @@ class BalancingController:
         u = -float(self.gain @ (np.asarray(obs, dtype=float) - self.reference))
         return np.array([min(max(u, -1.0), 1.0)])
 
+    act = __call__  # the protocol's agent interface (offdyn-bench evaluate --agent module:factory)
+
+
+def balancing_agent(task: str) -> BalancingController:
+    """``offdyn-bench evaluate --agent offdyn_bench.wheel_legged.operator:balancing_agent --task
+    wheellegged-standstill``: the clean LQR as a reference point under the protocol."""
+    return BalancingController(task.removeprefix("wheellegged-"))
+
 
 def _nominal_reference(task: str) -> np.ndarray:
     """Standstill: upright at the origin, at rest. Movestraight: upright at 0.2 m/s."""
