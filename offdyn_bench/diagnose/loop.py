@@ -22,6 +22,7 @@ from offdyn_bench.diagnose.residual import NUMERICAL_FLOOR, Hypothesis, Residual
 from offdyn_bench.diagnose.search import Fit, fit, screen
 from offdyn_bench.diagnose.source import SourceSimulator
 from offdyn_bench.diagnose.stochastic import action_channel_share, estimate_action_noise
+from offdyn_bench.engines.gap import engine_gap_note
 from offdyn_bench.errors import InvalidParameterError
 from offdyn_bench.versions import versions
 
@@ -301,6 +302,9 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     notes = list(evaluator.notes)
     if data.recorded_env_id and data.recorded_env_id != env_id:
         notes.insert(0, f"the dataset names {data.recorded_env_id!r} as its env; diagnosed against {env_id!r}")
+    engine_note = engine_gap_note(data.recorded_env_id)  # data from DART: a residual no effect explains
+    if engine_note is not None:
+        notes.insert(0, engine_note)
     for c, v, _, bound in chosen:
         if bound:
             notes.append(f"{c.label} = {v:.4g} sits on its bound [{c.low:g}, {c.high:g}]: the true value may lie beyond")
