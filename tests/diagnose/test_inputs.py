@@ -158,7 +158,8 @@ def test_unknown_env_and_missing_dataset(delay_npz, tmp_path) -> None:
     missing = runner.invoke(app, ["diagnose", "--env", "Hopper-v5", "--data", str(tmp_path / "nope.npz")])
     assert missing.exit_code == 2 and "no such file" in missing.output
     not_minari = runner.invoke(app, ["diagnose", "--env", "Hopper-v5", "--data", "nobody/nothing-v0"])
-    assert not_minari.exit_code == 2 and "cannot load Minari dataset 'nobody/nothing-v0'" in not_minari.output
+    assert not_minari.exit_code == 2 and "dataset nobody/nothing-v0 is not installed" in not_minari.output
+    assert "offdyn-bench datasets download nobody/nothing-v0" in not_minari.output
 
 
 def test_too_little_data_is_refused() -> None:
