@@ -1,7 +1,8 @@
 """Replay buffers batched over seeds, and a sampler over a fixed (shared) dataset.
 
 Both return :class:`baselines.sac.Batch` tensors ``[seeds, batch, ...]`` and draw indices from
-their own generator, so sampling never shifts the policy's random stream.
+their own generator, so sampling never shifts the policy's random stream. Storage, indices and
+generator live on one device, so sampling on an accelerator never waits for the host.
 """
 
 from __future__ import annotations
@@ -16,14 +17,18 @@ FIELDS = ("observations", "actions", "rewards", "next_observations", "terminatio
 class ReplayBuffer:
     """A ring buffer per seed; all seeds add one transition per step, so they share a size."""
 
-    def __init__(self, n_seeds: int, capacity: int, observation_dim: int, action_dim: int, seed: int) -> None:
+    def __init__(self, n_seeds: int, capacity: int, observation_dim: int, action_dim: int, seed: int,
+                 device: torch.device | str = "cpu") -> None:
         self.capacity, self.n_seeds = int(capacity), n_seeds
+        self.device = torch.device(device)
         shapes = {"observations": (observation_dim,), "actions": (action_dim,), "rewards": (),
                   "next_observations": (observation_dim,), "terminations": ()}
-        self.storage = {k: torch.zeros((n_seeds, self.capacity, *shape)) for k, shape in shapes.items()}
+        self.storage = {k: torch.zeros((n_seeds, self.capacity, *shape), device=self.device)
+                        for k, shape in shapes.items()}
         self.size = 0
         self.position = 0
-        self.generator = seed_generator(seed)
+        self.generator = seed_generator(seed, self.device)
+        self.seed_index = torch.arange(n_seeds, device=self.device)[:, None]
 
     def add(self, observations: torch.Tensor, actions: torch.Tensor, rewards: torch.Tensor,
             next_observations: torch.Tensor, terminations: torch.Tensor) -> None:
@@ -36,9 +41,8 @@ class ReplayBuffer:
     def sample(self, batch_size: int) -> Batch:
         if self.size == 0:
             raise RuntimeError("cannot sample from an empty replay buffer")
-        index = torch.randint(self.size, (self.n_seeds, batch_size), generator=self.generator)
-        seeds = torch.arange(self.n_seeds)[:, None]
-        return Batch(*(self.storage[name][seeds, index] for name in FIELDS))
+        index = torch.randint(self.size, (self.n_seeds, batch_size), generator=self.generator, device=self.device)
+        return Batch(*(self.storage[name][self.seed_index, index] for name in FIELDS))
 
     def state_dict(self, prefix: str) -> dict[str, torch.Tensor]:
         state = {f"{prefix}.{k}": v[:, :self.size] for k, v in self.storage.items()}
@@ -49,20 +53,21 @@ class ReplayBuffer:
     def load_state_dict(self, state: dict[str, torch.Tensor], prefix: str) -> None:
         self.size, self.position = (int(x) for x in state[f"{prefix}.counters"])
         for name, storage in self.storage.items():
-            storage[:, :self.size] = state[f"{prefix}.{name}"]
+            storage[:, :self.size] = state[f"{prefix}.{name}"].to(self.device)
         self.generator.set_state(state[f"{prefix}.generator"])
 
 
 class DatasetSampler:
     """Uniform minibatches from one fixed dataset, independently for each seed."""
 
-    def __init__(self, data: Batch, n_seeds: int, seed: int) -> None:
-        self.data, self.n_seeds = data, n_seeds
+    def __init__(self, data: Batch, n_seeds: int, seed: int, device: torch.device | str = "cpu") -> None:
+        self.device = torch.device(device)
+        self.data, self.n_seeds = Batch(*(field.to(self.device) for field in data)), n_seeds
         self.size = int(data.rewards.shape[0])
-        self.generator = seed_generator(seed)
+        self.generator = seed_generator(seed, self.device)
 
     def sample(self, batch_size: int) -> Batch:
-        index = torch.randint(self.size, (self.n_seeds, batch_size), generator=self.generator)
+        index = torch.randint(self.size, (self.n_seeds, batch_size), generator=self.generator, device=self.device)
         return Batch(*(field[index] for field in self.data))
 
     def state_dict(self, prefix: str) -> dict[str, torch.Tensor]:

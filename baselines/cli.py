@@ -40,6 +40,8 @@ def train_command(
                                                            "(default: the method's own); checked against the method."),
     budget: str | None = typer.Option(None, "--budget", help="Protocol budget: lite (100k steps) or full (1M); "
                                                              "sets --steps."),
+    device: str = typer.Option("cpu", "--device", help="cpu, cuda, cuda:N or auto (CUDA when there is one); "
+                                                       "runs are deterministic per device."),
 ) -> None:
     """Train a reference baseline and write config.json, metrics.jsonl, result.json and checkpoints."""
     from baselines.train import train
@@ -55,7 +57,7 @@ def train_command(
         result = train(algo, task, steps=steps, out=out, seed=seed, n_seeds=n_seeds, dataset=dataset,
                        overrides=parsed, eval_every=eval_every, eval_episodes=eval_episodes,
                        checkpoint_every=checkpoint_every, threads=threads, progress=progress, track=track,
-                       budget=budget)
+                       budget=budget, device=device)
     except OffdynError as error:
         typer.echo(f"error: {error}", err=True)
         raise typer.Exit(2) from None

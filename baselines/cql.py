@@ -9,6 +9,10 @@ policy at s' (``mu`` their densities). ``alpha`` (min-Q weight) is fixed at 2.0 
 tuning, as the H2O paper's CQL baseline for MuJoCo (Appendix B.1). No environment is stepped:
 one training step is one gradient update.
 
+Loss scale as in the official code (young-geng/CQL, and H2O's CQL): the penalty is added to
+``mse(Q1) + mse(Q2)`` (TD weight 1, not SAC's 0.5), and the target backs up no entropy term
+(``backup_entropy=False``), so alpha = 2.0 means what it meant where it was tuned.
+
 Composition with the core: an ``extra_loss``. Chosen: ``n_action_samples`` = 10 (CQL's default).
 
 Cost: per update the critics see ``3 n`` sampled actions per state (7,680 rows at batch 256), the
@@ -28,8 +32,12 @@ import torch
 from baselines.buffers import DatasetSampler
 from baselines.limits import NON_NEGATIVE, Limit, integer
 from baselines.method import MethodContext, deploy_actions, require_target_data
-from baselines.sac import Batch, ExtraCriticLoss, Metrics, QFunction, SACAgent, SACConfig, sac_update
+from baselines.sac import (Batch, ExtraCriticLoss, Metrics, QFunction, SACAgent, SACConfig, sac_update,
+                           seed_generator)
 
+
+TD_LOSS_WEIGHT = 1.0
+"""The official code's ``mse(Q1) + mse(Q2)``: the scale the published alpha was tuned against."""
 
 CPU_STATES_PER_CRITIC_PASS = 16
 """States whose 3 n sampled actions go through the critics together on a CPU (16 x 30 = 480 rows;
@@ -38,7 +46,8 @@ blocks of 8 to 32 states were fastest in benchmarks/bench_cql.py on a 2-core EPY
 
 @dataclasses.dataclass
 class Config:
-    sac: SACConfig = dataclasses.field(default_factory=SACConfig)
+    sac: SACConfig = dataclasses.field(default_factory=lambda: SACConfig(backup_entropy=False))
+    """SAC's settings, with the official code's ``backup_entropy=False``."""
     min_q_weight: float = 2.0
     n_action_samples: int = 10
 
@@ -51,9 +60,10 @@ class CQL:
 
     def __init__(self, config: Config, context: MethodContext) -> None:
         self.config = config
-        self.agent = SACAgent(context.observation_dim, context.action_dim, context.seeds, config.sac)
-        self.data = DatasetSampler(require_target_data(context, "cql"), len(context.seeds), context.stream("target"))
-        self.uniform_generator = torch.Generator().manual_seed(context.stream("cql-uniform"))
+        self.agent = SACAgent(context.observation_dim, context.action_dim, context.seeds, config.sac, context.device)
+        self.data = DatasetSampler(require_target_data(context, "cql"), len(context.seeds), context.stream("target"),
+                                   context.device)
+        self.uniform_generator = seed_generator(context.stream("cql-uniform"), context.device)
 
     def explore(self, observations, step):
         raise RuntimeError("CQL is offline: it takes no environment steps")
@@ -73,7 +83,8 @@ class CQL:
         seeds, size, _ = batch.observations.shape
         action_dim = agent.action_dim
         with torch.no_grad():
-            uniform = torch.rand((seeds, size * n, action_dim), generator=self.uniform_generator) * 2 - 1
+            uniform = torch.rand((seeds, size * n, action_dim), generator=self.uniform_generator,
+                                 device=agent.device) * 2 - 1
             policy_actions, policy_log_probs = agent.sample_actions(batch.observations, samples_per_state=n)
             next_actions, next_log_probs = agent.sample_actions(batch.next_observations, samples_per_state=n)
             # Sampled actions of one state sit side by side: [S, B, 3n, A], and the log-densities
@@ -113,7 +124,8 @@ class CQL:
         obs = batch.observations.repeat_interleave(n, dim=1)
         next_obs = batch.next_observations.repeat_interleave(n, dim=1)
         with torch.no_grad():
-            uniform = torch.rand((seeds, size * n, action_dim), generator=self.uniform_generator) * 2 - 1
+            uniform = torch.rand((seeds, size * n, action_dim), generator=self.uniform_generator,
+                                 device=agent.device) * 2 - 1
             policy_actions, policy_log_probs = agent.sample_actions(obs)
             next_actions, next_log_probs = agent.sample_actions(next_obs)
         uniform_log_density = -action_dim * math.log(2.0)
@@ -134,7 +146,8 @@ class CQL:
 
     def train_step(self, step: int) -> Metrics:
         batch = self.data.sample(self.config.sac.batch_size)
-        return sac_update(self.agent, batch, extra_loss=self.conservative_penalty(batch))
+        return sac_update(self.agent, batch, extra_loss=self.conservative_penalty(batch),
+                          td_loss_weight=TD_LOSS_WEIGHT)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return (self.agent.state_dict() | self.data.state_dict("target")

@@ -5,7 +5,7 @@ One SAC policy outputs two actions, ``(a_s, a_t)`` (a ``2 x action_dim`` tanh-Ga
 
 * ``a_s`` steps the source simulator, as in plain SAC;
 * ``a_t`` is the action the target should take to reproduce the same transition: it enters the
-  DARC reward adjustment ``dr(s, a_t, s')`` (classifiers trained on source ``(s, a_s, s')`` against
+  DARC reward adjustment ``dr(s, a_t, s')`` (classifiers trained on source transitions against
   the target dataset);
 * a regulariser keeps them close, so the reward the critic sees is
 
@@ -15,38 +15,47 @@ One SAC policy outputs two actions, ``(a_s, a_t)`` (a ``2 x action_dim`` tanh-Ga
 
 As lambda grows the two actions coincide and the reward is DARC's (tests check both).
 
-DAP+U trains ``ensemble_size`` classifier pairs (random initialisations, same data). Their
+DAP+U trains ``ensemble_size`` classifier pairs (own initialisations, minibatches and noise). Their
 disagreement ``u(s, a) = std_k log q_k(target | s, a)`` measures epistemic uncertainty; during
 training each sampled action ``a`` (both ``a_s`` and ``a_t``) is replaced by a robust action
 ``a ~ N(a, (beta * u)^2)`` (clipped to the action bounds) before it is used and stored. ``dr`` is
 the ensemble mean. Deployment uses the policy's own action.
 
-Composition with the core: a wider action space, a ``reward_correction``, and an action transform
-applied at rollout time. DARC's defaults everywhere else (DAP Section 5.1).
+Composition with the core: a wider action space, a ``reward_correction``, an optional actor-loss
+term, and an action transform applied at rollout time. DARC's defaults everywhere else (DAP Section
+5.1), in the form this suite used before DARC got its published preset (256-wide clipped classifiers).
+
+The paper leaves four choices open; each is a :class:`Config` field whose docstring says what the
+paper says, what was chosen, and the evidence (``baselines/results/``):
+
+* ``classifier_source_action``: which half labels the classifiers' source transitions;
+* ``regularized_actions``: the regulariser on sampled actions (in the reward) or on the policy's
+  mean actions (in the policy loss);
+* ``uncertainty_input``: the (s, a) classifier's disagreement (the only one known when an action
+  is chosen; s' is not);
+* ensemble members are independent (DAP+U): each gets its own bootstrap minibatch and its own
+  input noise (:class:`baselines.classifiers.DomainClassifiers`), not just its own initialisation.
 
 Chosen where the paper's extraction lost the value: lambda = 10 (the paper reports stability over a
-range and fixes one value). On the pendulum learning pair, lambda = 1 let a_t exploit the classifiers
-(dr is bounded by +-4 under the 2 tanh clipping, so a smaller penalty lets a_t leave the data and the
-deployed action fails at once), and lambda = 30 made the penalty on *sampled* actions dominate the
-task reward, so the tanh policy saturated both halves; 10 beat RL on source there. The regulariser is
-the *mean* squared difference over action dimensions so lambda does not depend on the robot; the
-ensemble has 5 members; the uncertainty uses the (s, a) classifier because s' is not known when the
-action is resampled; resampling starts when the reward correction does (before it, the classifiers
-are untrained and their disagreement is meaningless); ``u`` is per-sample.
+range and fixes one value). The regulariser is the *mean* squared difference over action dimensions
+so lambda does not depend on the robot; the ensemble has 5 members; resampling starts when the
+reward correction does (before it, the classifiers are untrained and their disagreement is
+meaningless); ``u`` is per-sample.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import torch
 
 from baselines.buffers import DatasetSampler, ReplayBuffer
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
-from baselines.limits import FINITE, NON_NEGATIVE, Limit, integer
+from baselines.limits import FINITE, NON_NEGATIVE, Limit, integer, one_of
 from baselines.method import MethodContext, require_target_data, uniform_actions
-from baselines.sac import Batch, Metrics, SACAgent, SACConfig, sac_update
+from baselines.networks import Params, mlp
+from baselines.sac import Batch, Metrics, SACAgent, SACConfig, sac_update, seed_generator
 
 
 @dataclasses.dataclass
@@ -63,10 +72,28 @@ class Config:
     uncertainty_scale: float = 0.0
     """beta: spread of the robust action per unit of uncertainty; 0 is DAP, 0.1 is DAP+U's default
     (the paper found 0.05 to 0.10 best and 0.2 unstable)."""
+    classifier_source_action: Literal["source", "target"] = "source"
+    """Which action stands in the classifiers' source transitions ``(s, a, s')``. The paper: the
+    classifiers of DARC (Eq. 3) evaluated at ``a_t``; it does not say which action the source side
+    is trained with. "source": ``a_s``, the action that stepped the simulator (the transition that
+    happened); "target": ``a_t``, the action ``dr`` is evaluated at. Evidence: see
+    ``baselines/results/README.md``."""
+    regularized_actions: Literal["sampled", "mean"] = "sampled"
+    """Where the regulariser ``lambda * mean (a_s - a_t)^2`` acts. The paper (Eq. 4) adds it to the
+    objective without saying on which actions. "sampled": on the buffer's sampled actions, as a
+    reward term (it also penalises both halves' variance, which fights the entropy tuning);
+    "mean": on the policy's tanh-means, as a policy-loss term (variance left to the entropy tuning)."""
+    uncertainty_input: Literal["sa"] = "sa"
+    """The classifiers whose ensemble disagreement is u. The paper: "the standard deviation of the
+    log probabilities" of the ensemble, without saying which classifier. Only the (s, a) one can
+    be evaluated when the action is resampled, before s' exists, so it is the only choice
+    (a field, so the run's config records it)."""
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "buffer_size": integer(1), "random_steps": integer(0), "warmup_steps": integer(0),
-        "reward_correction_scale": FINITE, "regularization_weight": NON_NEGATIVE, "uncertainty_scale": NON_NEGATIVE}
+        "reward_correction_scale": FINITE, "regularization_weight": NON_NEGATIVE, "uncertainty_scale": NON_NEGATIVE,
+        "classifier_source_action": one_of("source", "target"), "regularized_actions": one_of("sampled", "mean"),
+        "uncertainty_input": one_of("sa")}
 
 
 def dap_u_config() -> Config:
@@ -80,14 +107,16 @@ class DAP:
     def __init__(self, config: Config, context: MethodContext) -> None:
         self.config = config
         obs_dim, self.action_dim = context.observation_dim, context.action_dim
+        device = context.device
         # The policy's action is (a_s, a_t); the critic sees both.
-        self.agent = SACAgent(obs_dim, 2 * self.action_dim, context.seeds, config.sac)
+        self.agent = SACAgent(obs_dim, 2 * self.action_dim, context.seeds, config.sac, device)
         self.buffer = ReplayBuffer(len(context.seeds), config.buffer_size, obs_dim, 2 * self.action_dim,
-                                   context.stream("buffer"))
-        self.classifiers = DomainClassifiers(obs_dim, self.action_dim, context.seeds, config.classifier)
+                                   context.stream("buffer"), device)
+        self.classifiers = DomainClassifiers(obs_dim, self.action_dim, context.seeds, config.classifier,
+                                             device=device)
         self.target = DatasetSampler(require_target_data(context, "dap"), len(context.seeds),
-                                     context.stream("target"))
-        self.robust_generator = torch.Generator().manual_seed(context.stream("robust-actions"))
+                                     context.stream("target"), device)
+        self.robust_generator = seed_generator(context.stream("robust-actions"), device)
 
     def split(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(a_s, a_t)`` from a joint action."""
@@ -102,7 +131,7 @@ class DAP:
         robust = []
         for half in self.split(actions):
             spread = self.config.uncertainty_scale * self.uncertainty(observations, half)
-            noise = torch.randn(half.shape, generator=self.robust_generator)
+            noise = torch.randn(half.shape, generator=self.robust_generator, device=half.device)
             robust.append((half + spread[..., None] * noise).clamp(-1.0, 1.0))
         return torch.cat(robust, dim=-1)
 
@@ -128,25 +157,49 @@ class DAP:
         raise RuntimeError("DAP uses the fixed target dataset, not online target transitions")
 
     def reward_correction(self, batch: Batch, step: int) -> torch.Tensor:
-        """``scale * dr(s, a_t, s') - lambda * mean (a_s - a_t)^2``, ``[S, B]``."""
+        """``scale * dr(s, a_t, s') - lambda * mean (a_s - a_t)^2``, ``[S, B]`` (the second term only
+        with ``regularized_actions="sampled"``)."""
         source_actions, target_actions = self.split(batch.actions)
-        penalty = self.config.regularization_weight * (source_actions - target_actions).pow(2).mean(dim=-1)
+        if self.config.regularized_actions == "sampled":
+            penalty = self.config.regularization_weight * (source_actions - target_actions).pow(2).mean(dim=-1)
+        else:
+            penalty = torch.zeros_like(batch.rewards)
         if step < self.config.warmup_steps:
             return -penalty
         ratio = self.classifiers.log_ratio(batch.observations, target_actions, batch.next_observations)
         return self.config.reward_correction_scale * ratio.mean(dim=1) - penalty
 
+    def mean_action_penalty(self, actor: Params, observations: torch.Tensor) -> torch.Tensor:
+        """``lambda * mean_batch mean_i (tanh mu_s,i - tanh mu_t,i)^2`` per seed, ``[S]``, with
+        gradient into the actor (``regularized_actions="mean"``)."""
+        mean = torch.tanh(mlp(actor, observations)[..., :2 * self.action_dim])
+        source_mean, target_mean = self.split(mean)
+        return self.config.regularization_weight * (source_mean - target_mean).pow(2).mean(dim=(1, 2))
+
+    def classifier_batches(self, batch: Batch) -> tuple[Batch, Batch, bool]:
+        """The classifiers' (source, target) batches and whether each ensemble member has its own.
+
+        Source transitions carry ``a_s`` or ``a_t`` (``classifier_source_action``). With an
+        ensemble, member 0 trains on the policy batch and members 1..K-1 on fresh draws from the
+        buffer and the dataset (bootstrap minibatches), so members differ in data, not only in
+        initialisation."""
+        batch_size, k = self.config.sac.batch_size, self.classifiers.ensemble_size
+        if k > 1:
+            batch = Batch(*(torch.cat([a, b], dim=1) for a, b in zip(batch, self.buffer.sample((k - 1) * batch_size))))
+        source_half, target_half = self.split(batch.actions)
+        chosen = source_half if self.config.classifier_source_action == "source" else target_half
+        return batch._replace(actions=chosen), self.target.sample(k * batch_size), k > 1
+
     def train_step(self, step: int) -> Metrics:
         if step < self.config.random_steps:
             return {}
-        batch_size = self.config.sac.batch_size
-        batch = self.buffer.sample(batch_size)
-        # The classifiers learn the source dynamics from the action that stepped the simulator.
-        source = batch._replace(actions=self.split(batch.actions)[0])
-        metrics = self.classifiers.update(source, self.target.sample(batch_size))
+        batch = self.buffer.sample(self.config.sac.batch_size)
+        source, target, member_batches = self.classifier_batches(batch)
+        metrics = self.classifiers.update(source, target, member_batches=member_batches)
         correction = self.reward_correction(batch, step)
         metrics["dap/reward_correction"] = correction.mean()
-        return metrics | sac_update(self.agent, batch, reward_correction=correction)
+        actor_penalty = self.mean_action_penalty if self.config.regularized_actions == "mean" else None
+        return metrics | sac_update(self.agent, batch, reward_correction=correction, extra_actor_loss=actor_penalty)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return (self.agent.state_dict() | self.buffer.state_dict("buffer")

@@ -14,6 +14,11 @@ buffer filled by the current policy in the source simulator, with a dynamics-awa
 * Fixed min-Q weight ``beta`` = 0.01, discriminator input noise 0.1, simulated buffer 10x the
   dataset, half-and-half batches (Appendix B.1).
 
+Loss scale as in the official code (t6-thu/H2O): per critic, ``mse_real + mse_sim`` with each half
+its own mean (the simulated half weighted by the dynamics ratio), plus the penalty; the target backs
+up no entropy term (``backup_entropy=False``). beta = 0.01 was tuned on that scale; SAC's usual
+``0.5 * mean over the mixed batch`` would make it 4x stronger.
+
 Composition with the core: ``sample_weights`` and ``extra_loss`` passed to
 :func:`baselines.sac.sac_update`. With ``min_q_weight=0`` and ``dynamics_ratio_clip=(1, 1)`` it is
 SAC on the mixed buffer (a test checks this).
@@ -34,12 +39,16 @@ from baselines.buffers import DatasetSampler, ReplayBuffer, concat_batches
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
 from baselines.limits import NON_NEGATIVE, Limit, integer, ordered_pair
 from baselines.method import MethodContext, deploy_actions, explore_actions, require_target_data
-from baselines.sac import Batch, Metrics, QFunction, SACAgent, SACConfig, sac_update
+from baselines.sac import Batch, Metrics, QFunction, SACAgent, SACConfig, sac_update, seed_generator
+
+TD_LOSS_WEIGHT = 1.0
+"""Per critic ``mse_real + mse_sim`` (weight 1 on each half's mean), as in the official code."""
 
 
 @dataclasses.dataclass
 class Config:
-    sac: SACConfig = dataclasses.field(default_factory=SACConfig)
+    sac: SACConfig = dataclasses.field(default_factory=lambda: SACConfig(backup_entropy=False))
+    """SAC's settings, with the official code's ``backup_entropy=False``."""
     classifier: ClassifierConfig = dataclasses.field(
         default_factory=lambda: ClassifierConfig(input_noise_std=0.1))
     min_q_weight: float = 0.01
@@ -71,16 +80,17 @@ class H2O:
         self.config = config
         data = require_target_data(context, "h2o")
         obs_dim, act_dim = context.observation_dim, context.action_dim
-        self.agent = SACAgent(obs_dim, act_dim, context.seeds, config.sac)
+        device = context.device
+        self.agent = SACAgent(obs_dim, act_dim, context.seeds, config.sac, device)
         capacity = config.buffer_size_factor * int(data.rewards.shape[0])
-        self.buffer = ReplayBuffer(len(context.seeds), capacity, obs_dim, act_dim, context.stream("buffer"))
-        self.real = DatasetSampler(data, len(context.seeds), context.stream("target"))
-        self.classifiers = DomainClassifiers(obs_dim, act_dim, context.seeds, config.classifier)
+        self.buffer = ReplayBuffer(len(context.seeds), capacity, obs_dim, act_dim, context.stream("buffer"), device)
+        self.real = DatasetSampler(data, len(context.seeds), context.stream("target"), device)
+        self.classifiers = DomainClassifiers(obs_dim, act_dim, context.seeds, config.classifier, device=device)
         # Sigma: covariance of the real states, as a Cholesky factor for sampling.
         states = data.observations
         covariance = torch.cov(states.T) + 1e-6 * torch.eye(obs_dim)
-        self.state_cholesky = torch.linalg.cholesky(covariance)
-        self.kl_generator = torch.Generator().manual_seed(context.stream("h2o-kl"))
+        self.state_cholesky = torch.linalg.cholesky(covariance).to(device)
+        self.kl_generator = seed_generator(context.stream("h2o-kl"), device)
 
     def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         actions = explore_actions(self.agent, observations, step, self.config.random_steps)
@@ -109,7 +119,8 @@ class H2O:
         def repeat(x: torch.Tensor) -> torch.Tensor:
             return x.repeat_interleave(n, dim=1)
 
-        noise = torch.randn((seeds, batch * n, obs_dim), generator=self.kl_generator) @ self.state_cholesky.T
+        noise = torch.randn((seeds, batch * n, obs_dim), generator=self.kl_generator,
+                            device=sim.observations.device) @ self.state_cholesky.T
         log_ratio = self.classifiers.log_ratio(repeat(sim.observations), repeat(sim.actions),
                                                repeat(sim.next_observations) + noise).mean(dim=1)
         kl = -log_ratio.view(seeds, batch, n).mean(dim=-1)
@@ -117,7 +128,12 @@ class H2O:
 
     def agent_update(self, real: Batch, sim: Batch) -> Metrics:
         """The dynamics-aware SAC step on one real half-batch and one simulated half-batch."""
-        weights = torch.cat([torch.ones_like(real.rewards), self.dynamics_ratio(sim)], dim=1)
+        n_real, n_sim = real.rewards.shape[1], sim.rewards.shape[1]
+        ratio = self.dynamics_ratio(sim)
+        # The core takes one mean over the mixed batch; these weights turn it into the official
+        # mean_real + mean_sim (each half its own mean), with TD weight 1.
+        weights = torch.cat([torch.full_like(real.rewards, (n_real + n_sim) / n_real),
+                             ratio * ((n_real + n_sim) / n_sim)], dim=1)
         gap = self.dynamics_gap(sim)
         log_gap_weights = (gap / gap.sum(dim=1, keepdim=True)).log()  # log w_i, sums to 1 over the batch
         beta = self.config.min_q_weight
@@ -130,8 +146,9 @@ class H2O:
             return beta * penalty, {"h2o/penalty": penalty.detach()}
 
         mixed = concat_batches(real, sim)
-        metrics = sac_update(self.agent, mixed, sample_weights=weights, extra_loss=value_penalty)
-        return metrics | {"h2o/dynamics_ratio": weights[:, real.rewards.shape[1]:].mean(), "h2o/kl": gap.mean()}
+        metrics = sac_update(self.agent, mixed, sample_weights=weights, extra_loss=value_penalty,
+                             td_loss_weight=TD_LOSS_WEIGHT)
+        return metrics | {"h2o/dynamics_ratio": ratio.mean(), "h2o/kl": gap.mean()}
 
     def train_step(self, step: int) -> Metrics:
         if step < self.config.random_steps:

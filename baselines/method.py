@@ -23,6 +23,8 @@ class MethodContext:
     seeds: tuple[int, ...]
     target_data: Batch | None = None
     """The fixed target dataset (actions scaled to [-1, 1]), shared by all seeds; None if unused."""
+    device: str = "cpu"
+    """Where the method keeps its networks, buffers and random streams ("cpu", "cuda", "cuda:1")."""
     task: str | None = None
     """The task pair's name (MATL reads its robot for the target reward modes); None in unit tests."""
 
@@ -72,7 +74,7 @@ class Method(Protocol):
 
 
 def uniform_actions(n_seeds: int, action_dim: int, generator: torch.Generator) -> torch.Tensor:
-    return torch.rand((n_seeds, action_dim), generator=generator) * 2 - 1
+    return torch.rand((n_seeds, action_dim), generator=generator, device=generator.device) * 2 - 1
 
 
 def explore_actions(agent: SACAgent, observations: torch.Tensor, step: int, random_steps: int) -> torch.Tensor:

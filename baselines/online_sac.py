@@ -36,9 +36,9 @@ class OnlineSAC:
 
     def __init__(self, config: Config, context: MethodContext, interaction: Interaction) -> None:
         self.config, self.interaction = config, interaction
-        self.agent = SACAgent(context.observation_dim, context.action_dim, context.seeds, config.sac)
+        self.agent = SACAgent(context.observation_dim, context.action_dim, context.seeds, config.sac, context.device)
         self.buffer = ReplayBuffer(len(context.seeds), config.buffer_size, context.observation_dim,
-                                   context.action_dim, context.stream("buffer"))
+                                   context.action_dim, context.stream("buffer"), context.device)
 
     def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         actions = explore_actions(self.agent, observations, step, self.config.random_steps)

@@ -46,15 +46,23 @@ class SACConfig:
     batch_size: int = 256
     initial_temperature: float = 1.0
     target_entropy: float | None = None
-    """None: minus the action dimension (the usual heuristic)."""
+    """None: ``target_entropy_per_action_dim`` times the action dimension."""
+    target_entropy_per_action_dim: float = -1.0
+    """-1: the usual heuristic, minus the action dimension; DARC's original code uses -1/2."""
     log_std_min: float = -20.0
     log_std_max: float = 2.0
+    reward_scale: float = 1.0
+    """Multiplies the (corrected) reward in the Bellman target; DARC's original code uses 0.1."""
+    backup_entropy: bool = True
+    """Back the entropy term ``-alpha log pi(a'|s')`` up into the target, as SAC does. The official
+    CQL and H2O code default to False (their penalties were tuned on targets without it)."""
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "hidden_sizes": layer_sizes(allow_empty=False), "actor_lr": POSITIVE, "critic_lr": POSITIVE,
         "temperature_lr": POSITIVE, "discount": number(0.0, 1.0), "target_update_rate": number(0.0, 1.0, low_open=True),
         "batch_size": integer(1), "initial_temperature": POSITIVE, "target_entropy": optional(FINITE),
-        "log_std_min": FINITE, "log_std_max": FINITE}
+        "log_std_min": FINITE, "log_std_max": FINITE, "target_entropy_per_action_dim": FINITE,
+        "reward_scale": POSITIVE}
 
     def cross_checks(self) -> list[str]:
         if self.log_std_min >= self.log_std_max:
@@ -81,38 +89,44 @@ already: reuse them rather than evaluate the critics twice), return a per-seed l
 add to the critic loss, and metrics."""
 
 
-def seed_generator(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(int(seed))
+def seed_generator(seed: int, device: torch.device | str = "cpu") -> torch.Generator:
+    """A random stream on ``device``. CPU and CUDA generators give different numbers for one
+    seed, so a run is deterministic per device, not across devices."""
+    return torch.Generator(device=device).manual_seed(int(seed))
 
 
 class SACAgent:
     """Parameters, optimizers and random stream of SAC for ``len(seeds)`` independent seeds.
 
     Each seed's networks are initialised from that seed alone, so seed 3 starts from the same
-    weights whether it trains alone or next to others.
+    weights whether it trains alone or next to others, and on every device (initial weights are
+    drawn on the CPU and then moved; later random streams live on ``device``).
     """
 
     def __init__(self, observation_dim: int, action_dim: int, seeds: Sequence[int],
-                 config: SACConfig | None = None) -> None:
+                 config: SACConfig | None = None, device: torch.device | str = "cpu") -> None:
         self.config = config = config or SACConfig()
+        self.device = torch.device(device)
         self.observation_dim, self.action_dim = observation_dim, action_dim
         self.n_seeds = len(seeds)
         hidden = list(config.hidden_sizes)
         inits = [seed_generator(s) for s in seeds]
-        self.actor = _stack([init_mlp([g], [observation_dim, *hidden, 2 * action_dim]) for g in inits])
+        self.actor = _stack([init_mlp([g], [observation_dim, *hidden, 2 * action_dim]) for g in inits], self.device)
         # Critic members are ordered (seed, critic): member 2*s + c.
-        self.critic = _stack([init_mlp([g, g], [observation_dim + action_dim, *hidden, 1]) for g in inits])
+        self.critic = _stack([init_mlp([g, g], [observation_dim + action_dim, *hidden, 1]) for g in inits],
+                             self.device)
         self.critic_target = [p.detach().clone() for p in self.critic]
         self.log_temperature = torch.full((self.n_seeds,), math.log(config.initial_temperature),
-                                          requires_grad=True)
-        self.target_entropy = -float(action_dim) if config.target_entropy is None else config.target_entropy
+                                          device=self.device, requires_grad=True)
+        self.target_entropy = (config.target_entropy_per_action_dim * float(action_dim)
+                               if config.target_entropy is None else config.target_entropy)
         self.actor_optimizer = torch.optim.Adam(self.actor, lr=config.actor_lr, foreach=True)
         self.critic_optimizer = torch.optim.Adam(self.critic, lr=config.critic_lr, foreach=True)
         self.temperature_optimizer = torch.optim.Adam([self.log_temperature], lr=config.temperature_lr,
                                                       foreach=True)
         # Policy noise; other components (buffers, classifiers) own their streams, so adding a
         # component never shifts this one.
-        self.generator = seed_generator(seeds[0] * 7919 + 1)
+        self.generator = seed_generator(seeds[0] * 7919 + 1, self.device)
 
     @property
     def temperature(self) -> torch.Tensor:
@@ -135,7 +149,7 @@ class SACAgent:
         if samples_per_state > 1:
             mean = mean.repeat_interleave(samples_per_state, dim=1)
             log_std = log_std.repeat_interleave(samples_per_state, dim=1)
-        noise = torch.randn(mean.shape, generator=self.generator)
+        noise = torch.randn(mean.shape, generator=self.generator, device=mean.device)
         pre_tanh = mean + log_std.exp() * noise
         gaussian_log_prob = (-0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
         # log(1 - tanh(u)^2), written stably.
@@ -187,9 +201,10 @@ class SACAgent:
         load_optimizer_tensors(self.temperature_optimizer, state, "temperature_optimizer")
 
 
-def _stack(per_seed: list[Params]) -> Params:
-    """Concatenate per-seed parameter lists along the member dimension."""
-    return [torch.cat([p[i].detach() for p in per_seed]).requires_grad_() for i in range(len(per_seed[0]))]
+def _stack(per_seed: list[Params], device: torch.device) -> Params:
+    """Concatenate per-seed parameter lists along the member dimension, on ``device``."""
+    return [torch.cat([p[i].detach() for p in per_seed]).to(device).requires_grad_()
+            for i in range(len(per_seed[0]))]
 
 
 # --- the updates -----------------------------------------------------------------------------
@@ -197,29 +212,41 @@ def _stack(per_seed: list[Params]) -> Params:
 
 def soft_bellman_target(agent: SACAgent, batch: Batch, reward_correction: torch.Tensor | None = None
                         ) -> torch.Tensor:
-    """r + dr + gamma (1 - done) [min_i Q'_i(s', a') - alpha log pi(a'|s')],  a' ~ pi(s'). ``[S, B]``."""
+    """c (r + dr) + gamma (1 - done) [min_i Q'_i(s', a') - alpha log pi(a'|s')],  a' ~ pi(s'),
+    with c = ``reward_scale``; the entropy term only with ``backup_entropy``. ``[S, B]``."""
+    config = agent.config
     with torch.no_grad():
         next_actions, next_log_probs = agent.sample_actions(batch.next_observations)
         next_q = agent.q_values(batch.next_observations, next_actions, agent.critic_target).min(dim=1).values
-        soft_value = next_q - agent.temperature[:, None] * next_log_probs
+        soft_value = next_q - agent.temperature[:, None] * next_log_probs if config.backup_entropy else next_q
         rewards = batch.rewards if reward_correction is None else batch.rewards + reward_correction
-        return rewards + agent.config.discount * (1.0 - batch.terminations) * soft_value
+        if config.reward_scale != 1.0:
+            rewards = config.reward_scale * rewards
+        return rewards + config.discount * (1.0 - batch.terminations) * soft_value
 
 
-def critic_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Tensor | None = None,
-                  sample_weights: torch.Tensor | None = None, extra_loss: ExtraCriticLoss | None = None
-                  ) -> Metrics:
-    """One gradient step on both critics.
+def td_loss(agent: SACAgent, batch: Batch, q: torch.Tensor, *, reward_correction: torch.Tensor | None = None,
+            sample_weights: torch.Tensor | None = None, td_loss_weight: float = 0.5) -> torch.Tensor:
+    """``td_loss_weight * sum_critics mean_batch w (Q(s, a) - y)^2`` per seed, ``[S]``, with ``q`` the
+    live critic values ``[S, 2, B]``, ``y`` from :func:`soft_bellman_target` and ``w`` =
+    ``sample_weights`` (``[S, B]``, default 1).
 
-    Loss per seed: ``sum_critics mean_batch 0.5 * w * (Q(s, a) - y)^2`` (+ ``extra_loss``), with
-    ``y`` from :func:`soft_bellman_target` and ``w = sample_weights`` (``[S, B]``, default 1).
-    """
+    ``td_loss_weight`` = 0.5 is SAC's usual scale. It matters only next to a value penalty: the
+    official CQL and H2O code add their penalties to ``mse(Q1) + mse(Q2)``, weight 1."""
     target = soft_bellman_target(agent, batch, reward_correction)
-    q = agent.q_values(batch.observations, batch.actions)
     squared_error = (q - target[:, None, :]).pow(2)
     if sample_weights is not None:
         squared_error = squared_error * sample_weights[:, None, :]
-    loss_per_seed = 0.5 * squared_error.mean(dim=2).sum(dim=1)
+    return td_loss_weight * squared_error.mean(dim=2).sum(dim=1)
+
+
+def critic_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Tensor | None = None,
+                  sample_weights: torch.Tensor | None = None, extra_loss: ExtraCriticLoss | None = None,
+                  td_loss_weight: float = 0.5) -> Metrics:
+    """One gradient step on both critics: :func:`td_loss` plus ``extra_loss``."""
+    q = agent.q_values(batch.observations, batch.actions)
+    loss_per_seed = td_loss(agent, batch, q, reward_correction=reward_correction, sample_weights=sample_weights,
+                            td_loss_weight=td_loss_weight)
     metrics: Metrics = {"critic/td_loss": loss_per_seed.detach(), "critic/q": q.detach().mean(dim=(1, 2))}
     if extra_loss is not None:
         extra, extra_metrics = extra_loss(agent.q_values, q)
@@ -231,12 +258,19 @@ def critic_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Ten
     return metrics
 
 
-def actor_update(agent: SACAgent, observations: torch.Tensor) -> Metrics:
-    """One policy step, ``mean_batch [alpha log pi(a|s) - min_i Q_i(s, a)]``, then one temperature
-    step towards the target entropy, using the same sampled actions."""
+ExtraActorLoss = Callable[[Params, torch.Tensor], torch.Tensor]
+"""Given the live actor parameters and the observations ``[S, B, obs]``, a per-seed loss ``[S]`` to
+add to the policy loss (DAP's regulariser on the policy means)."""
+
+
+def actor_update(agent: SACAgent, observations: torch.Tensor, extra_loss: ExtraActorLoss | None = None) -> Metrics:
+    """One policy step, ``mean_batch [alpha log pi(a|s) - min_i Q_i(s, a)]`` (+ ``extra_loss``), then
+    one temperature step towards the target entropy, using the same sampled actions."""
     actions, log_probs = agent.sample_actions(observations)
     q = agent.q_values(observations, actions, detached(agent.critic)).min(dim=1).values
     actor_loss = (agent.temperature[:, None] * log_probs - q).mean(dim=1)
+    if extra_loss is not None:
+        actor_loss = actor_loss + extra_loss(agent.actor, observations)
     agent.actor_optimizer.zero_grad(set_to_none=True)
     actor_loss.sum().backward()
     agent.actor_optimizer.step()
@@ -257,11 +291,13 @@ def update_targets(agent: SACAgent) -> None:
 
 def sac_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Tensor | None = None,
                sample_weights: torch.Tensor | None = None, extra_loss: ExtraCriticLoss | None = None,
-               actor_observations: torch.Tensor | None = None) -> Metrics:
+               actor_observations: torch.Tensor | None = None, td_loss_weight: float = 0.5,
+               extra_actor_loss: ExtraActorLoss | None = None) -> Metrics:
     """Critic step, actor and temperature step, target update. ``actor_observations`` defaults to
     the batch's observations."""
     metrics = critic_update(agent, batch, reward_correction=reward_correction,
-                            sample_weights=sample_weights, extra_loss=extra_loss)
-    metrics |= actor_update(agent, batch.observations if actor_observations is None else actor_observations)
+                            sample_weights=sample_weights, extra_loss=extra_loss, td_loss_weight=td_loss_weight)
+    metrics |= actor_update(agent, batch.observations if actor_observations is None else actor_observations,
+                            extra_actor_loss)
     update_targets(agent)
     return metrics

@@ -65,7 +65,7 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
           dataset: str | None = None, overrides: Mapping[str, str] | None = None,
           eval_every: int | None = None, eval_episodes: int = 10, checkpoint_every: int | None = None,
           threads: int | None = 1, progress: bool = True, stop_after: int | None = None,
-          track: str | None = None, budget: str | None = None) -> dict[str, Any] | None:
+          track: str | None = None, budget: str | None = None, device: str = "cpu") -> dict[str, Any] | None:
     """Train ``algo`` on ``task`` for ``steps`` steps with seeds ``seed .. seed + n_seeds - 1``.
 
     ``steps`` counts interaction-environment steps (gradient updates for offline CQL).
@@ -76,7 +76,12 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
     ``budget`` (``lite``/``full``) sets ``steps`` from the protocol; ``track`` is checked against
     the method (default: the method's own track). A method that needs a target dataset and gets
     none trains on the task's official dataset, installed and verified first.
+
+    ``device`` (``cpu``, ``cuda``, ``cuda:N`` or ``auto``) holds the networks, buffers and random
+    streams; a run is deterministic per device (CPU and CUDA draw different random numbers), and the
+    device is recorded in ``config.json`` and ``result.json``.
     """
+    device = resolve_device(device)
     method_spec = get_algorithm(algo)
     pair = get_task(task)
     if steps is not None:
@@ -107,6 +112,10 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
     out = Path(out)
     check_writable(out)
     resuming = _check_out_dir(out, settings)
+    if resuming and read_config(out).get("device", "cpu") != device:
+        # Random streams differ between devices: a resumed run would not equal an uninterrupted one.
+        raise OffdynError(f"--out {str(out)!r} was trained on {read_config(out).get('device', 'cpu')}, not {device}; "
+                          "nothing was changed. Resume it with the same --device, or use a new --out folder")
     dataset_provenance = None
     target_data = None
     if dataset is not None:
@@ -119,7 +128,7 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
     probe = pair.make("target")
     context = MethodContext(observation_dim=int(np.prod(probe.observation_space.shape)),
                             action_dim=int(np.prod(probe.action_space.shape)), seeds=seeds,
-                            target_data=target_data, task=pair.name)
+                            target_data=target_data, task=pair.name, device=device)
     probe.close()
     method = method_spec.build(config, context)
 
@@ -131,8 +140,9 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
         if not resuming:
             write_json_atomic(out / CONFIG_FILE, settings | {"task_spec": pair.to_dict(),
                                                              "dataset_provenance": dataset_provenance,
-                                                             "track": plan.track, "budget": plan.budget})
-        loop = _Loop(method, pair, seeds, out, plan.target_step_limit)
+                                                             "track": plan.track, "budget": plan.budget,
+                                                             "device": device})
+        loop = _Loop(method, pair, seeds, out, plan.target_step_limit, device)
         start, notes = loop.restore() if resuming else (0, [])
         for message in warnings:
             print(f"warning: {message}", file=sys.stderr)
@@ -147,7 +157,7 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
                   "returns": {str(s): [float(x) for x in final_returns[i]] for i, s in enumerate(seeds)},
                   "mean_return": float(final_returns.mean()), "versions": versions(),
                   "config": settings["config"], "warnings": warnings, "track": plan.track, "budget": plan.budget,
-                  "target_steps_per_seed": loop.target_steps_taken(steps)}
+                  "target_steps_per_seed": loop.target_steps_taken(steps), "device": device}
         write_json_atomic(out / RESULT_FILE, result)
     return result
 
@@ -174,6 +184,25 @@ def _run(loop: _Loop, algo: str, pair: TaskPair, start: int, steps: int, eval_ev
     if final_returns is None:  # resumed after the last checkpoint but before result.json
         final_returns = loop.evaluate(eval_episodes)
     return final_returns
+
+
+def resolve_device(device: str) -> str:
+    """``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (CUDA when there is one) as a torch device name;
+    an error that says what is available when the device is not."""
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cpu":
+        return device
+    if device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit()):
+        if not torch.cuda.is_available():
+            raise OffdynError(f"--device {device}: this torch ({torch.__version__}) sees no CUDA device; "
+                              "use --device cpu or auto")
+        index = int(device[5:]) if ":" in device else 0
+        if index >= torch.cuda.device_count():
+            raise OffdynError(f"--device {device}: expected an index below {torch.cuda.device_count()} "
+                              "(the CUDA devices torch sees)")
+        return device
+    raise OffdynError(f"--device {device!r}: expected cpu, cuda, cuda:N or auto")
 
 
 def _check_arguments(**arguments: int | None) -> None:
@@ -269,7 +298,7 @@ class _Envs:
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Step with ``[-1, 1]`` actions; returns (obs, rewards, next_obs, terminations) tensors."""
-        scaled = self.low + (actions.numpy().astype(np.float64) + 1.0) * 0.5 * (self.high - self.low)
+        scaled = self.low + (actions.cpu().numpy().astype(np.float64) + 1.0) * 0.5 * (self.high - self.low)
         obs = self.observations.copy()
         next_obs = np.zeros_like(obs)
         rewards, terminations = np.zeros(len(self.envs)), np.zeros(len(self.envs))
@@ -291,8 +320,8 @@ class _Envs:
 
 class _Loop:
     def __init__(self, method: Method, pair: TaskPair, seeds: Sequence[int], out: Path,
-                 target_step_limit: int | None = None) -> None:
-        self.method, self.out, self.seeds = method, out, seeds
+                 target_step_limit: int | None = None, device: str = "cpu") -> None:
+        self.method, self.out, self.seeds, self.device = method, out, seeds, torch.device(device)
         self.target_step_limit = target_step_limit
         self.train_envs = _Envs(pair, method.interaction, seeds, 1) if method.interaction != "none" else None
         self.target_envs = _Envs(pair, "target", seeds, 2) if method.target_step_every else None
@@ -305,8 +334,8 @@ class _Loop:
     def step(self, step: int) -> dict[str, torch.Tensor]:
         method = self.method
         if self.train_envs is not None:
-            env_actions, stored = method.explore(torch.as_tensor(self.train_envs.observations, dtype=torch.float32),
-                                                 step)
+            env_actions, stored = method.explore(torch.as_tensor(self.train_envs.observations, dtype=torch.float32,
+                                                                 device=self.device), step)
             obs, rewards, next_obs, terminations = self.train_envs.step(env_actions)
             method.record(obs, stored, rewards, next_obs, terminations)
         if self.target_envs is not None and (step + 1) % method.target_step_every == 0:
@@ -314,7 +343,8 @@ class _Loop:
                 raise ProtocolError(f"target step {self.target_steps_taken(step + 1)} exceeds the track's budget "
                                     f"of {self.target_step_limit} target steps per seed")
             explore_target = getattr(method, "explore_target", method.explore)
-            env_actions, stored = explore_target(torch.as_tensor(self.target_envs.observations, dtype=torch.float32),
+            env_actions, stored = explore_target(torch.as_tensor(self.target_envs.observations, dtype=torch.float32,
+                                                                 device=self.device),
                                                  step)
             obs, rewards, next_obs, terminations = self.target_envs.step(env_actions)
             method.record_target(obs, stored, rewards, next_obs, terminations)
@@ -335,7 +365,8 @@ class _Loop:
             obs = np.stack([env.reset(seed=EVAL_SEED + e)[0] for env in self.eval_envs])
             running = np.ones(len(self.seeds), dtype=bool)
             while running.any():
-                actions = self.method.deploy(torch.as_tensor(obs, dtype=torch.float32)).numpy().astype(np.float64)
+                actions = self.method.deploy(torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+                                             ).cpu().numpy().astype(np.float64)
                 scaled = low + (actions + 1.0) * 0.5 * (high - low)
                 for i in np.flatnonzero(running):
                     obs[i], reward, terminated, truncated, _ = self.eval_envs[i].step(scaled[i])

@@ -18,6 +18,8 @@ from baselines.train import train
 
 PENDULUM = "invertedpendulum-kinematic-slider-hard"
 TINY = {"sac.hidden_sizes": "[32, 32]", "sac.batch_size": "32", "random_steps": "50"}
+SAC_SETTINGS = {"sac.reward_scale": "1.0", "sac.target_entropy_per_action_dim": "-1.0"}
+"""Published DARC's reward scale and target entropy set back to SAC's."""
 
 
 def _random_batch(seeds: int, size: int, obs_dim: int, action_dim: int, seed: int) -> Batch:
@@ -40,14 +42,14 @@ def test_darc_with_zero_correction_is_exactly_sac(tmp_path, pendulum_dataset):
     common = dict(task=PENDULUM, steps=160, eval_every=80, eval_episodes=2, progress=False)
     sac = train("sac-source", out=tmp_path / "sac", overrides=TINY, **common)
     darc_run = train("darc", out=tmp_path / "darc", dataset=str(pendulum_dataset),
-                     overrides=TINY | {"reward_correction_scale": "0", "warmup_steps": "0"}, **common)
+                     overrides=TINY | SAC_SETTINGS | {"reward_correction_scale": "0", "warmup_steps": "0"}, **common)
     sac_state, darc_state = _final_tensors(tmp_path / "sac"), _final_tensors(tmp_path / "darc")
     for name in [k for k in sac_state if k.startswith(("actor.", "critic."))]:
         assert torch.equal(sac_state[name], darc_state[name]), name
     assert sac["returns"] == darc_run["returns"]
     # ...and the correction does act when switched on (the comparison above can fail).
     corrected = train("darc", out=tmp_path / "darc-on", dataset=str(pendulum_dataset),
-                      overrides=TINY | {"warmup_steps": "0"}, **common)
+                      overrides=TINY | SAC_SETTINGS | {"warmup_steps": "0"}, **common)
     on_state = _final_tensors(tmp_path / "darc-on")
     assert corrected is not None and not torch.equal(on_state["critic.0"], sac_state["critic.0"])
 
@@ -55,7 +57,10 @@ def test_darc_with_zero_correction_is_exactly_sac(tmp_path, pendulum_dataset):
 def test_dap_with_tied_actions_gets_the_darc_reward():
     context = MethodContext(observation_dim=4, action_dim=2, seeds=(0, 1), target_data=_dataset(action_dim=2))
     dap_method = dap.DAP(dap.Config(warmup_steps=0, regularization_weight=5.0), context)
-    darc_method = darc.DARC(darc.Config(warmup_steps=0), context)
+    # DAP keeps the classifiers of the H2O variant of DARC (256 wide, clipped logits).
+    darc_variant = darc.h2o_variant_config()
+    darc_variant.warmup_steps = 0
+    darc_method = darc.DARC(darc_variant, context)
     source = _random_batch(2, 64, 4, 2, seed=1)
     for _ in range(20):  # train both classifiers identically (same streams, same data)
         target = _random_batch(2, 64, 4, 2, seed=2)
@@ -103,7 +108,8 @@ def test_h2o_without_penalty_and_weights_is_sac_on_the_mixed_buffer():
     switched_off = run(h2o.Config(sac=small, min_q_weight=0.0, dynamics_ratio_clip=(1.0, 1.0)))
     agent = SACAgent(4, 1, (0, 1), small)
     for _ in range(3):
-        sac_update(agent, concat_batches(real, sim))
+        # H2O's per-critic mean_real + mean_sim, with equal halves: twice the mixed batch's mean.
+        sac_update(agent, concat_batches(real, sim), td_loss_weight=2.0)
     for got, want in zip(switched_off, agent.actor + agent.critic):
         assert torch.equal(got, want)
     default = run(h2o.Config(sac=small))
