@@ -6,12 +6,12 @@ numpy, jsonschema, matplotlib, SQLAlchemy, Starlette and uvicorn load inside the
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+
+from offdyn_bench.errors import exit_on_error
 
 leaderboard_app = typer.Typer(no_args_is_help=True, add_completion=False,
                               help="Leaderboard: assemble and validate submissions, render the board, serve it.")
@@ -31,17 +31,6 @@ ReferencesOption = Annotated[Optional[Path], typer.Option(
     "--references", help="Reference-score file (default: the shipped assets/reference_scores.json).")]
 
 
-@contextlib.contextmanager
-def _errors_exit() -> Iterator[None]:
-    from offdyn_bench.errors import OffdynError
-
-    try:
-        yield
-    except OffdynError as error:
-        typer.echo(f"error: {error}", err=True)
-        raise typer.Exit(2) from None
-
-
 @leaderboard_app.command("submit")
 def submit_command(
     runs_dir: Annotated[Path, typer.Argument(help="Folder holding one evaluated run folder (evaluation.json) "
@@ -57,7 +46,7 @@ def submit_command(
     force: Annotated[bool, typer.Option(help="Replace an existing --out file.")] = False,
 ) -> None:
     """Assemble a submission from the evaluation.json files under RUNS_DIR and validate it."""
-    with _errors_exit():
+    with exit_on_error():
         from leaderboard.assemble import assemble_submission
         from leaderboard.store import write_file_atomic
         from leaderboard.submission import SubmissionError, canonical_json
@@ -78,7 +67,7 @@ def validate_command(
     files: Annotated[list[Path], typer.Argument(help="Submission files.")],
 ) -> None:
     """Validate submission files against the schema and the protocol (what the server accepts)."""
-    with _errors_exit():
+    with exit_on_error():
         from leaderboard.submission import read_submission_file
 
         for path in files:
@@ -93,7 +82,7 @@ def build_command(
     references: ReferencesOption = None,
 ) -> None:
     """Render the store into leaderboard.md (README table) and a static, self-contained index.html."""
-    with _errors_exit():
+    with exit_on_error():
         from leaderboard.render import build_site
 
         markdown, page = build_site(store, out, references=references)
@@ -111,7 +100,7 @@ def serve_command(
         help="Largest accepted request body (default: the submission size limit, 8 MiB).")] = None,
 ) -> None:
     """Serve the board at / and accept POST /submissions from token holders."""
-    with _errors_exit():
+    with exit_on_error():
         import uvicorn
 
         from leaderboard.server import create_app
@@ -128,7 +117,7 @@ def token_create_command(
     db: DbOption = DEFAULT_DB,
 ) -> None:
     """Create a submitter token; it is printed once and stored only as its sha256."""
-    with _errors_exit():
+    with exit_on_error():
         from leaderboard.database import Database
 
         token = Database(db).create_token(name)
@@ -143,7 +132,7 @@ def token_revoke_command(
     db: DbOption = DEFAULT_DB,
 ) -> None:
     """Revoke a submitter token (its submissions stay)."""
-    with _errors_exit():
+    with exit_on_error():
         from leaderboard.database import Database
 
         Database(db).revoke_token(name)

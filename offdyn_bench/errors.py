@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import difflib
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 
 class OffdynError(ValueError):
@@ -39,3 +40,16 @@ class InvalidParameterError(OffdynError):
         self.parameter = parameter
         self.value = value
         super().__init__(f"{owner}: invalid {parameter}={value!r}; expected {expected}")
+
+
+@contextlib.contextmanager
+def exit_on_error() -> Iterator[None]:
+    """For a command-line command: an :class:`OffdynError` becomes one ``error: ...`` line on
+    stderr and exit code 2, never a traceback."""
+    import typer
+
+    try:
+        yield
+    except OffdynError as error:
+        typer.echo(f"error: {error}", err=True)
+        raise typer.Exit(2) from None

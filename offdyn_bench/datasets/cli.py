@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import pathlib
-from collections.abc import Iterator
 from typing import Annotated, Optional
 
 import typer
@@ -18,7 +16,7 @@ from offdyn_bench.datasets.staging import clean_stale_staging
 from offdyn_bench.datasets.transfer import TransferLimits
 from offdyn_bench.datasets.manifest import MANIFEST_PATH, Manifest, read_manifest
 from offdyn_bench.datasets.recipes import dataset_id, qualities_of
-from offdyn_bench.errors import OffdynError
+from offdyn_bench.errors import OffdynError, exit_on_error
 from offdyn_bench.tasks import TASKS
 
 datasets_app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -26,15 +24,6 @@ datasets_app = typer.Typer(no_args_is_help=True, add_completion=False,
 
 ManifestOption = Annotated[Optional[pathlib.Path], typer.Option(
     "--manifest", help="Manifest with the expected hashes (default: the shipped assets/datasets.json).")]
-
-
-@contextlib.contextmanager
-def _errors_exit() -> Iterator[None]:
-    try:
-        yield
-    except OffdynError as error:
-        typer.echo(f"error: {error}", err=True)
-        raise typer.Exit(2) from None
 
 
 def _behaviour_status(entry_recipe) -> str:  # noqa: ANN001 - a Recipe
@@ -50,7 +39,7 @@ def list_command(
 ) -> None:
     """Dataset ids of the manifest: transitions, archive size, hashes recorded?, installed?, behaviour.
     Reads only: creates no folder (not even the datasets root)."""
-    with _errors_exit():
+    with exit_on_error():
         manifest = read_manifest(manifest_path)
         ids = sorted(manifest.entries)
         if buildable:
@@ -83,7 +72,7 @@ def build_command(
     manifest_path: ManifestOption = None,
 ) -> None:
     """Regenerate datasets from their recipes (identical bytes on the same platform and MuJoCo)."""
-    with _errors_exit():
+    with exit_on_error():
         manifest = read_manifest(manifest_path)
         targets = sorted(manifest.entries) if all_ else list(ids or [])
         if not targets:
@@ -121,7 +110,7 @@ def build_command(
 @datasets_app.command("verify")
 def verify_command(ident: Annotated[str, typer.Argument(metavar="ID")], manifest_path: ManifestOption = None) -> None:
     """Check every file of an installed dataset against the manifest's sha256."""
-    with _errors_exit():
+    with exit_on_error():
         manifest = read_manifest(manifest_path)
         report = verify_installed(manifest.get(ident))
         if not report.ok:
@@ -150,7 +139,7 @@ def download_command(
 ) -> None:
     """Install a dataset and verify every sha256: from the remote when one is configured,
     otherwise rebuilt from its recipe. Says which it did."""
-    with _errors_exit():
+    with exit_on_error():
         manifest: Manifest = read_manifest(manifest_path)
         limits = TransferLimits.from_environment()
         overrides = {"deadline_s": deadline, "min_rate_bytes_per_s": min_rate}
@@ -191,7 +180,7 @@ def import_policy_command(
     from offdyn_bench.datasets.archive import sha256_file
     from offdyn_bench.datasets.policies import evaluate_policy, import_sac_actor, update_sidecar
 
-    with _errors_exit():
+    with exit_on_error():
         state_file, run = _checkpoint_state_file(checkpoint)
         training: dict = {"checkpoint": "/".join(state_file.parts[-3:]), "checkpoint_sha256": sha256_file(state_file)}
         if note:

@@ -11,18 +11,13 @@ from pathlib import Path
 
 import typer
 
-from offdyn_bench.errors import OffdynError
+from offdyn_bench.errors import OffdynError, exit_on_error
 
 protocol_app = typer.Typer(no_args_is_help=True, add_completion=False,
                            help="The fixed evaluation protocol: show it, record reference scores, score results.")
 reference_app = typer.Typer(no_args_is_help=True, add_completion=False,
                             help="Record reference scores (random policy, sac-target oracle) with provenance.")
 protocol_app.add_typer(reference_app, name="reference")
-
-
-def _fail(error: Exception) -> typer.Exit:
-    typer.echo(f"error: {error}", err=True)
-    return typer.Exit(2)
 
 
 def _parse_seeds(text: str | None) -> list[int] | None:
@@ -74,12 +69,10 @@ def evaluate_command(
     from offdyn_bench.evaluate import evaluate
     from offdyn_bench.protocol.scoring import method_scores
 
-    try:
+    with exit_on_error():
         record = evaluate(agent, task, track=track, budget=budget, seeds=_parse_seeds(seeds), episodes=episodes,
                           out=out, method=method, progress=progress, side=side)
         scores = method_scores(record["method"] or "agent", [record], record["budget"])
-    except OffdynError as error:
-        raise _fail(error) from None
     for i, seed in enumerate(scores.seeds):
         line = f"seed {seed}: mean target return {scores.raw[i, 0]:.1f}"
         if scores.normalized is not None:
@@ -101,10 +94,8 @@ def show(as_json: bool = typer.Option(False, "--json", help="Print the protocol 
     from offdyn_bench.protocol import definition
     from offdyn_bench.protocol.references import reference_scores
 
-    try:
+    with exit_on_error():
         references = reference_scores()
-    except OffdynError as error:
-        raise _fail(error) from None
     summary = definition.summary()
     summary["references"] = {task: sorted(kinds) for task, kinds in references.items()}
     if as_json:
@@ -134,15 +125,13 @@ def reference_random(task: list[str] = typer.Option([], "--task", help="Task pai
     from offdyn_bench.protocol.references import REFERENCE_FILE, record_random_reference
     from offdyn_bench.tasks import get_task
 
-    try:
+    with exit_on_error():
         tasks = list(CORE_SUITE) if core_suite else [get_task(t).name for t in task]
         if not tasks:
             raise OffdynError("name a task with --task, or pass --core-suite")
         for name in tasks:
             score = record_random_reference(name)
             typer.echo(f"{name}: random {score.mean_return:.1f} over {len(score.returns)} episodes")
-    except OffdynError as error:
-        raise _fail(error) from None
     typer.echo(f"wrote {REFERENCE_FILE}")
 
 
@@ -153,10 +142,8 @@ def reference_oracle(evaluations: list[Path] = typer.Argument(..., help="evaluat
     from offdyn_bench.evaluate import read_evaluation
     from offdyn_bench.protocol.references import REFERENCE_FILE, record_oracle_reference
 
-    try:
+    with exit_on_error():
         score = record_oracle_reference([read_evaluation(path) for path in evaluations])
-    except OffdynError as error:
-        raise _fail(error) from None
     typer.echo(f"{score.task}: oracle at budget {score.budget} = {score.mean_return:.1f} "
                f"({len(score.provenance['seeds'])} seeds x {score.provenance['episodes_per_seed']} episodes); "
                f"wrote {REFERENCE_FILE}")
@@ -175,9 +162,7 @@ def score(evaluations: list[Path] = typer.Argument(..., help="evaluation.json fi
     from offdyn_bench.evaluate import read_evaluation
     from offdyn_bench.protocol.report import score_report
 
-    try:
+    with exit_on_error():
         records = [read_evaluation(path) for path in evaluations]
         report = score_report(records, budget, _parse_references(reference) if reference else None)
-    except OffdynError as error:
-        raise _fail(error) from None
     typer.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.to_text())
