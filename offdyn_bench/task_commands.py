@@ -50,6 +50,11 @@ def describe_pair(pair: TaskPair) -> str:
     for side in SIDES:
         effects = pair.effects(side)
         lines.append(f"\n{side}: {pair.env_id(side)}")
+        if pair.engine(side) != "mujoco":  # the engine is the shift: the same MJCF on another simulator
+            lines.append(f"  physics engine: {pair.engine(side)} ({pair.entry_point(side)}), the same MJCF file")
+        if not effects and pair.engine(side) != "mujoco":
+            lines.append("  effects: none")
+            continue
         if not effects:
             lines.append("  effects: none (the nominal model)")
             continue
