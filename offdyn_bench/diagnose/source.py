@@ -127,6 +127,10 @@ class SourceSimulator:
         if not all(hasattr(unwrapped, a) for a in ("model", "data", "frame_skip", "_get_obs")):
             raise DiagnosisInputError(f"source env {env_id!r} is not a Gymnasium MuJoCo env "
                                       "(it needs model, data, frame_skip and _get_obs)")
+        engine = getattr(unwrapped, "engine", "mujoco")
+        if engine != "mujoco":  # e.g. a DART target: it carries a MuJoCo model, but never steps it
+            raise DiagnosisInputError(f"source env {env_id!r} runs on {engine}; diagnosis predicts with MuJoCo "
+                                      "(mujoco.rollout), so --env must be a MuJoCo env, e.g. the pair's source id")
         self.env_id = env_id
         self.env = env
         self.base_model: mujoco.MjModel = unwrapped.model

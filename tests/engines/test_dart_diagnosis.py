@@ -37,3 +37,11 @@ def test_diagnosis_of_dart_data_explains_part_and_reports_the_engine_gap(tmp_pat
     assert any("runs on DART, not MuJoCo" in note and "engine gap" in note for note in saved["notes"])
     text = summary_text(result)
     assert "an unexplained residual remains" in text and "engine gap that no effect can explain" in text
+
+
+def test_a_dart_env_as_diagnosis_source_is_a_clear_error_before_any_data_is_read(tmp_path):
+    from offdyn_bench.diagnose.data import DiagnosisInputError
+
+    missing = tmp_path / "never-read.npz"
+    with pytest.raises(DiagnosisInputError, match="runs on dart; diagnosis predicts with MuJoCo"):
+        diagnose("offdyn/Hopper-dart-target-v0", missing)
