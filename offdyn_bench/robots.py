@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from types import MappingProxyType
 
 from offdyn_bench.errors import UnknownNameError
+from offdyn_bench.wheel_legged.pairs import EPISODE_STEPS as WHEEL_LEGGED_EPISODE_STEPS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,8 +82,8 @@ _ROBOT_LIST = [
     Robot(
         name="WheelLegged",
         env_class="offdyn_bench.wheel_legged.env:WheelLeggedEnv",
-        max_episode_steps=6000,
-        task_episode_steps={"standstill": 6000, "movestraight": 4000},  # 30 s and 20 s at 200 Hz
+        max_episode_steps=WHEEL_LEGGED_EPISODE_STEPS["standstill"],
+        task_episode_steps=WHEEL_LEGGED_EPISODE_STEPS,  # 30 s and 20 s at 200 Hz
     ),
     # A fast robot for learning tests of the baselines; not part of the benchmark grid.
     Robot(

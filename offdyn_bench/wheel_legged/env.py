@@ -79,19 +79,16 @@ from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from gymnasium.spaces import Box
 
 from offdyn_bench.errors import UnknownNameError
+from offdyn_bench.wheel_legged.pairs import CONTROL_HZ, TASK_NAMES
 
 WheelLeggedTask = Literal["standstill", "movestraight"]
-TASK_NAMES: tuple[WheelLeggedTask, ...] = ("standstill", "movestraight")
 MODEL_PATH = Path(__file__).resolve().parents[2] / "assets" / "robots" / "wheel_legged.xml"
 
-CONTROL_HZ = 200
 FALL_TILT = 0.6  # rad
 TARGET_VELOCITY = 0.2  # m/s, the paper's
-EPISODE_SECONDS = {"standstill": 30, "movestraight": 20}
-EPISODE_STEPS = {task: seconds * CONTROL_HZ for task, seconds in EPISODE_SECONDS.items()}
 
 # Indices into qpos / qvel of the planar model (rootx, rootz, rooty, wheel_axle).
-X, Z, TILT, WHEEL = 0, 1, 2, 3
+X, TILT, WHEEL = 0, 2, 3  # (1 is rootz)
 # The observation as [qpos, qvel] coordinates, per task.
 OBSERVED = {"standstill": (TILT, X, 4 + TILT, 4 + X), "movestraight": (TILT, 4 + TILT, 4 + X)}
 

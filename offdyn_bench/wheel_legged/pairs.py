@@ -23,7 +23,8 @@ from offdyn_bench.effects import Effect, effects_from_dicts
 
 ROBOT = "WheelLegged"
 TASK_NAMES = ("standstill", "movestraight")
-EPISODE_STEPS = {"standstill": 30 * 200, "movestraight": 20 * 200}  # 30 s and 20 s at 200 Hz
+CONTROL_HZ = 200
+EPISODE_STEPS = {"standstill": 30 * CONTROL_HZ, "movestraight": 20 * CONTROL_HZ}  # 30 s and 20 s, as in the paper
 
 # Observation layout per task (see env.py): which index holds which quantity.
 OBSERVATION_NAMES = {"standstill": ("tilt", "displacement", "tilt_rate", "velocity"),
