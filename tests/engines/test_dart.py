@@ -181,7 +181,6 @@ def test_capsules_rest_on_the_floor_with_each_supported_detector(detector):
     assert env.unwrapped.dart.world.getLastCollisionResult().getNumContacts() > 0
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("robot", ROBOTS)
 def test_the_source_policy_scores_clearly_above_random_on_dart(robot):
     policy = load_policy(POLICIES[robot])
