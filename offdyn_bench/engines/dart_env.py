@@ -13,14 +13,19 @@ What DART does differently from MuJoCo on these models (the engine gap):
   four-sided (pyramidal) friction cone; MuJoCo's contacts are soft (``solref``/``solimp`` give a
   spring-damper with 0.02 s time constant and a 1 mm ``margin``) with a pyramidal cone of its own
   solver. DART has no equivalent of ``solref``, ``solimp`` or ``margin``;
-- joint armature: MuJoCo adds ``armature`` to the joint-space inertia (1.0 on Hopper's actuated
-  joints, 0.01 on Walker2d's); DART has no such term, so the actuated joints are lighter in DART;
-- joint limits are hard constraints in DART, soft (``solreflimit``) in MuJoCo;
+- joint limits are hard constraints in DART, soft (``solreflimit``) in MuJoCo. DART removes a limit
+  violation within one step: Gymnasium's reset noise (+-5 mrad) puts each thigh and leg joint of
+  Hopper and Walker2d past its limit of 0 at half the resets, and DART pushes it back at up to
+  2.5 rad/s where MuJoCo barely moves it;
 - integration: DART steps semi-implicit Euler with implicit joint damping; the models ask MuJoCo
   for RK4;
 - frictionless contacts: Hopper's robot geoms declare ``condim=1`` (frictionless among themselves);
   DART applies friction to every contact, so a self-contact of Hopper's limbs has friction in DART;
 - the floor is a 400 m wide, 1 m thick box (MuJoCo: an infinite plane).
+
+Not a difference: joint ``armature`` (1.0 on Hopper's actuated joints, 0.01 on Walker2d's), which
+DART lacks, is emulated exactly within DART's step (see :class:`DartWorld`); pass
+``emulate_armature=False`` to study that gap too (the actuated joints are then far lighter).
 
 Every ``reset`` info carries ``state`` and every ``step`` info ``prev_state`` and ``state``, like the
 MuJoCo envs of this suite: ``[time, qpos (nq), qvel (nv)]``. DART's generalized coordinates are
@@ -57,24 +62,26 @@ def _on_dart(base: type) -> type:
     class DartEnv(base):  # type: ignore[misc, valid-type]
         engine = "dart"
 
-        def __init__(self, collision_detector: str = "ode", **kwargs: Any) -> None:
+        def __init__(self, collision_detector: str = "ode", emulate_armature: bool = True, **kwargs: Any) -> None:
             if collision_detector not in COLLISION_DETECTORS:
                 raise OffdynError(f"unknown DART collision detector {collision_detector!r}; expected one of "
                                   f"{', '.join(COLLISION_DETECTORS)} (FCL and DART's own detector lack capsules)")
             self.collision_detector = collision_detector
+            self.emulate_armature = bool(emulate_armature)
             self.model_effects: tuple = ()  # DART targets take no model effects: the engine is the shift
             self.state_size = 0
             self.dart: DartWorld
             self._last_state: np.ndarray | None = None
             self._last_time = math.nan
             base.__init__(self, **kwargs)
-            utils.EzPickle.__init__(self, collision_detector=collision_detector, **kwargs)
+            utils.EzPickle.__init__(self, collision_detector=collision_detector,
+                                    emulate_armature=self.emulate_armature, **kwargs)
 
         def _initialize_simulation(self) -> tuple[mujoco.MjModel, mujoco.MjData]:
             model = mujoco.MjModel.from_xml_path(self.fullpath)
             model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.width)
             model.vis.global_.offheight = max(model.vis.global_.offheight, self.height)
-            self.dart = build_dart_world(self.fullpath, model, self.collision_detector)
+            self.dart = build_dart_world(self.fullpath, model, self.collision_detector, self.emulate_armature)
             self.state_size = 1 + model.nq + model.nv
             return model, mujoco.MjData(model)
 

@@ -16,6 +16,7 @@ set of physical parameters and differ only in how they simulate them:
   at z = 0;
 - friction: MuJoCo uses the larger friction of the two geoms in contact, DART the smaller; each robot
   shape carries the value MuJoCo would use against the floor, the floor the largest of them;
+- armature: DART has none; it is emulated exactly within DART's step (:meth:`DartWorld.step`);
 - the collision detector: the parser's default (FCL) replaces capsules by 0.1 m spheres; ODE's and
   Bullet's detectors support capsules (ODE is the default here: it is stateless between steps and
   about twice as fast in this suite's benchmark).
