@@ -22,7 +22,8 @@ from offdyn_bench.tasks import SIDES, TASKS, TaskPair, get_task, register_tasks
 
 ALL_IDS = [pair.env_id(side) for pair in TASKS.values() for side in SIDES]
 ID_PATTERN = re.compile(r"^offdyn/((Ant|HalfCheetah|Hopper|Walker2d|InvertedPendulum)-[a-z0-9-]+(-[a-z0-9]+)?-"
-                        r"[a-z0-9.]+|WheelLegged-(standstill|movestraight)|(Hopper|Walker2d)-dart)-(source|target)-v\d+$")
+                        r"[a-z0-9.]+|WheelLegged-(standstill|movestraight)|(Hopper|Walker2d)-dart)"
+                        r"-(source|target)-v\d+$")
 
 
 def _rollout(env: gymnasium.Env, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
@@ -175,7 +176,8 @@ def test_target_differs_from_base_only_where_its_effects_declare(name):
             elif effect.family == "channel":
                 assert not declared or differences  # the model changes only through its model effects
             elif effect.kind == "contact_solref":
-                np.testing.assert_allclose(compiled.geom_solref, [[effect.timeconst, effect.dampratio]] * compiled.ngeom)
+                expected = [effect.timeconst, effect.dampratio]
+                np.testing.assert_allclose(compiled.geom_solref, [expected] * compiled.ngeom)
                 assert differences["geom_solref"]
             elif effect.kind == "contact_solimp":
                 expected = [effect.dmin, effect.dmax, effect.width, effect.midpoint, effect.power]
