@@ -26,6 +26,16 @@ SMALL = {"trpo.hidden_sizes": "[16, 16]", "discriminator.hidden_sizes": "[16]", 
          "trpo.value_iterations": "5"}
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Small batched networks: one thread is fastest, and on a shared 2-core machine two threads can
+    be 50x slower (as ``train`` itself does, with its default ``threads=1``)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def _run(algo: str, out, steps: int = 600, **overrides: str):
     return train(algo, PENDULUM, steps=steps, out=out, overrides=SMALL | overrides, eval_every=steps // 2,
                  eval_episodes=2, progress=False, seed=5, n_seeds=2)
@@ -71,7 +81,9 @@ def test_conjugate_gradient_solves_one_spd_system_per_seed():
 def _policy_batch(agent: TRPOAgent, n: int = 256):
     generator = torch.Generator().manual_seed(1)
     observations = torch.randn(agent.n_seeds, n, 3, generator=generator)
-    actions = torch.stack([agent.sample(observations[:, i]) for i in range(n)], dim=1)
+    with torch.no_grad():
+        mean, log_std = agent.distribution(observations)
+        actions = mean + log_std.exp() * torch.randn(mean.shape, generator=generator)
     advantages = torch.randn(agent.n_seeds, n, generator=generator) + actions[..., 0]  # favour larger a_0
     return observations, actions, advantages
 
@@ -301,3 +313,42 @@ def test_cli_errors_are_one_line(tmp_path):
                                "--set", "target_reward=dense", "--no-progress"])
     assert done.exit_code == 2 and "target_reward=\"dense\": expected one of 'full', 'sparse'" in done.output
     assert not (tmp_path / "run").exists()
+
+
+# --- learning (slow) ----------------------------------------------------------------------------
+#
+# invertedpendulum-gravity-3.0 (the pole falls three times faster in the target), the robot's reward
+# uninformative (-1 when the pole falls), 50,000 training steps (5,000 robot steps per seed), rollouts
+# of 200 steps, seeds 0-2 trained together, the learning curve every 10,000 steps over 3 episodes.
+# About 5 minutes on a loaded 2-core CPU.
+
+LEARNING = {"rollout_steps": "200", "target_reward": "uninformative"}
+
+
+@pytest.fixture(scope="module")
+def uninformative_curves(tmp_path_factory):
+    curves = {}
+    for name, algo, overrides in (("independent", "independent", {}), ("matl", "matl", {})):
+        out = tmp_path_factory.mktemp("learning") / name
+        train(algo, "invertedpendulum-gravity-3.0", steps=50_000, out=out, overrides=LEARNING | overrides,
+              eval_every=10_000, eval_episodes=3, progress=False, seed=0, n_seeds=3)
+        lines = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+        curves[name] = np.array([line["target_return"] for line in lines])  # [evaluations, seeds]
+    return curves
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="not reproduced (measured: independent's mean curve 55, 84, 102, 85, 419; "
+                                       "MATL's robot falls within 2-6 steps throughout): the paper's rho_R = log D "
+                                       "<= 0 pays the robot to end its episodes early")
+def test_the_robot_agent_learns_faster_with_the_auxiliary_reward_than_independent(uninformative_curves):
+    # "Faster": a larger area under the learning curve, over all seeds.
+    assert uninformative_curves["matl"].mean() > uninformative_curves["independent"].mean()
+
+
+@pytest.mark.slow
+def test_with_the_papers_robot_reward_and_a_fall_cost_only_the_robot_learns_to_fall(uninformative_curves):
+    # What the run shows instead: the per-step cost log D outweighs the one-off fall cost, so the
+    # robot agent ends its episodes at once, while independent TRPO learns to balance for longer.
+    assert uninformative_curves["matl"].max() < 10
+    assert uninformative_curves["independent"][-1].mean() > 50
