@@ -298,3 +298,24 @@ def test_an_mjcf_dart_cannot_simulate_is_refused_before_parsing(tmp_path):
     model = mujoco.MjModel.from_xml_path(str(xml))
     with pytest.raises(OffdynError, match="joint 'j' is not a hinge or slide joint"):
         build_dart_world(str(xml), model)
+
+
+def test_actuators_are_mujocos_motors_gear_times_clipped_control():
+    env = make_dart_env("Walker2d")
+    dart = env.unwrapped.dart
+    forces = dart.torques(np.array([2.0, -3.0, 0.5, 0.0, -0.25, 1.0]))
+    model = env.unwrapped.model
+    expected = model.actuator_gear[:, 0] * np.array([1.0, -1.0, 0.5, 0.0, -0.25, 1.0])  # ctrlrange [-1, 1]
+    np.testing.assert_allclose(forces[dart.actuator_dofs], expected)
+    assert not np.delete(forces, dart.actuator_dofs).any()  # the root dofs are not actuated
+
+
+def test_an_engine_pair_cannot_be_registered_again_on_another_engine():
+    from offdyn_bench.tasks import TaskPair, register_tasks
+
+    on_mujoco = TaskPair(robot="Hopper", shift="dart", level="", source_effects=(), target_effects=())
+    with pytest.raises(OffdynError, match="offdyn/Hopper-dart-target-v0 is already registered with other dynamics"):
+        register_tasks([on_mujoco])
+    with pytest.raises(UnknownNameError, match="unknown physics engine 'bullet'"):
+        TaskPair(robot="Hopper", shift="x", level="", source_effects=(), target_effects=(),
+                 target_engine="bullet").entry_point("target")
