@@ -18,7 +18,8 @@ import torch
 from baselines.buffers import ReplayBuffer
 from baselines.limits import Limit, integer
 from baselines.method import Interaction, MethodContext, deploy_actions, explore_actions
-from baselines.sac import Metrics, SACAgent, SACConfig, sac_update
+from baselines.sac import GraphedUpdate, Metrics, SACAgent, SACConfig, make_capturable, sac_update
+from offdyn_bench.errors import OffdynError
 
 
 @dataclasses.dataclass
@@ -27,6 +28,11 @@ class Config:
     buffer_size: int = 1_000_000
     random_steps: int = 5_000
     """Uniform-random actions for the first steps; updates start after them."""
+    cuda_graph: bool = False
+    """On a CUDA device, replay the update from a CUDA graph (:class:`baselines.sac.GraphedUpdate`):
+    deterministic, but not equal to the eager run (the capture's warm-up updates are real ones, and
+    a resumed run captures again, so it does not equal an uninterrupted one either).
+    Not measured in this suite yet: no GPU was available when it was written (issue 9)."""
 
     LIMITS: ClassVar[dict[str, Limit]] = {"buffer_size": integer(1), "random_steps": integer(0)}
 
@@ -39,6 +45,11 @@ class OnlineSAC:
         self.agent = SACAgent(context.observation_dim, context.action_dim, context.seeds, config.sac, context.device)
         self.buffer = ReplayBuffer(len(context.seeds), config.buffer_size, context.observation_dim,
                                    context.action_dim, context.stream("buffer"), context.device)
+        if config.cuda_graph and self.agent.device.type != "cuda":
+            raise OffdynError(f"cuda_graph=true needs --device cuda; this run is on {self.agent.device}")
+        self.graphed: GraphedUpdate | None = None
+        if config.cuda_graph:
+            make_capturable(self.agent)
 
     def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         actions = explore_actions(self.agent, observations, step, self.config.random_steps)
@@ -56,7 +67,12 @@ class OnlineSAC:
     def train_step(self, step: int) -> Metrics:
         if step < self.config.random_steps:
             return {}
-        return sac_update(self.agent, self.buffer.sample(self.config.sac.batch_size))
+        batch = self.buffer.sample(self.config.sac.batch_size)
+        if not self.config.cuda_graph:
+            return sac_update(self.agent, batch)
+        if self.graphed is None:
+            self.graphed = GraphedUpdate(lambda b: sac_update(self.agent, b), batch, [self.agent.generator])
+        return self.graphed(batch)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return self.agent.state_dict() | self.buffer.state_dict("buffer")

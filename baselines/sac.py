@@ -301,3 +301,52 @@ def sac_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Tensor
                             extra_actor_loss)
     update_targets(agent)
     return metrics
+
+
+class GraphedUpdate:
+    """``update(batch)`` captured once in a CUDA graph and replayed: one launch per update instead
+    of a few hundred small kernels, which is what a seed-batched update on a GPU is bound by.
+
+    The batch is copied into static input tensors before each replay (sampling stays outside the
+    graph, so a growing buffer needs no re-capture); the returned metrics are static output tensors,
+    read without a host sync until the caller needs them. Random streams used inside the update
+    (the agent's policy noise, a method's own generators) are passed as ``generators`` and
+    registered with the graph, so every replay draws fresh numbers. The optimizers must be
+    ``capturable`` (see :func:`make_capturable`). The warm-up updates the graph needs are real
+    updates: a graphed run is deterministic, but not equal to an eager one.
+    """
+
+    def __init__(self, update: Callable[[Batch], Metrics], example: Batch,
+                 generators: Sequence[torch.Generator], warmup_updates: int = 3) -> None:
+        if example.observations.device.type != "cuda":
+            raise ValueError("GraphedUpdate needs CUDA tensors (a CUDA graph captures GPU work)")
+        self.static_batch = Batch(*(x.clone() for x in example))
+        side_stream = torch.cuda.Stream()
+        side_stream.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side_stream):  # warm-up off the capture stream, as CUDA graphs require
+            for _ in range(warmup_updates):
+                update(self.static_batch)
+        torch.cuda.current_stream().wait_stream(side_stream)
+        self.graph = torch.cuda.CUDAGraph()
+        register = getattr(self.graph, "register_generator_state", None)
+        if register is None:
+            raise RuntimeError(f"torch {torch.__version__} cannot register generators with a CUDA graph "
+                               "(needs torch >= 2.5 built with CUDA)")
+        for generator in generators:
+            register(generator)
+        with torch.cuda.graph(self.graph):
+            self.metrics = update(self.static_batch)
+
+    def __call__(self, batch: Batch) -> Metrics:
+        for static, fresh in zip(self.static_batch, batch):
+            static.copy_(fresh, non_blocking=True)
+        self.graph.replay()
+        return self.metrics
+
+
+def make_capturable(agent: SACAgent) -> None:
+    """Switch the agent's Adam optimizers to ``capturable=True`` (step counters on the device), as
+    CUDA-graph capture requires; call before the first update."""
+    for optimizer in (agent.actor_optimizer, agent.critic_optimizer, agent.temperature_optimizer):
+        for group in optimizer.param_groups:
+            group["capturable"] = True

@@ -1,0 +1,95 @@
+"""Training on a device: ``--device cpu|cuda|auto``, errors before anything is written, one device
+per run folder, and (where there is CUDA) determinism per device and the CUDA-graph update."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from baselines.method import MethodContext
+from baselines.online_sac import Config as OnlineConfig
+from baselines.online_sac import build_source
+from baselines.sac import SACConfig
+from baselines.train import resolve_device, train
+from offdyn_bench.cli import app
+from offdyn_bench.errors import OffdynError
+
+PENDULUM = "invertedpendulum-kinematic-slider-hard"
+TINY = {"sac.hidden_sizes": "[16, 16]", "sac.batch_size": "16", "random_steps": "20"}
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device visible to torch")
+no_cuda = pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error where there is no CUDA")
+
+
+def test_auto_and_cpu_resolve_and_other_names_are_refused():
+    assert resolve_device("cpu") == "cpu"
+    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(OffdynError, match=r"--device 'tpu': expected cpu, cuda, cuda:N or auto"):
+        resolve_device("tpu")
+    with pytest.raises(OffdynError, match="expected cpu, cuda, cuda:N or auto"):
+        resolve_device("cuda:x")
+
+
+@no_cuda
+def test_cuda_without_a_device_fails_before_anything_is_written(tmp_path):
+    with pytest.raises(OffdynError, match="--device cuda: this torch .* sees no CUDA device; use --device cpu or auto"):
+        train("sac-source", PENDULUM, steps=40, out=tmp_path / "run", overrides=TINY, progress=False, device="cuda")
+    assert not (tmp_path / "run").exists()
+    result = CliRunner().invoke(app, ["train", "sac-source", "--task", PENDULUM, "--steps", "40", "--out",
+                                      str(tmp_path / "cli"), "--device", "cuda:0", "--no-progress"])
+    assert result.exit_code == 2 and "error: --device cuda:0: this torch" in result.output
+    assert not (tmp_path / "cli").exists()
+
+
+def test_the_device_is_recorded_and_a_run_resumes_only_on_its_own(tmp_path):
+    out = tmp_path / "run"
+    assert train("sac-source", PENDULUM, steps=60, out=out, overrides=TINY, eval_episodes=1, progress=False,
+                 stop_after=30, checkpoint_every=30) is None
+    config = json.loads((out / "config.json").read_text())
+    assert config["device"] == "cpu"
+    # A run folder from another device (written as a CUDA run would be) is not resumed on this one.
+    config["device"] = "cuda:0"
+    (out / "config.json").write_text(json.dumps(config))
+    before = sorted(p.name for p in out.rglob("*"))
+    with pytest.raises(OffdynError, match="was trained on cuda:0, not cpu; nothing was changed"):
+        train("sac-source", PENDULUM, steps=60, out=out, overrides=TINY, eval_episodes=1, progress=False,
+              checkpoint_every=30)
+    assert sorted(p.name for p in out.rglob("*")) == before
+
+
+def test_a_cuda_graph_needs_a_cuda_device():
+    context = MethodContext(observation_dim=4, action_dim=1, seeds=(0,))
+    with pytest.raises(OffdynError, match="cuda_graph=true needs --device cuda; this run is on cpu"):
+        build_source(OnlineConfig(sac=SACConfig(hidden_sizes=(8,)), cuda_graph=True), context)
+
+
+@needs_cuda
+@pytest.mark.parametrize("algo", ["sac-source", "dap-u", "h2o", "cql"])
+def test_cuda_runs_are_deterministic(algo, tmp_path, pendulum_dataset):
+    overrides = TINY | ({"warmup_steps": "30"} if algo == "dap-u" else {})
+    if algo == "cql":
+        overrides = {k: v for k, v in TINY.items() if k.startswith("sac.")}
+    dataset = None if algo == "sac-source" else str(pendulum_dataset)
+    runs = [train(algo, PENDULUM, steps=80, out=tmp_path / f"run{i}", n_seeds=2, dataset=dataset, overrides=overrides,
+                  eval_episodes=2, progress=False, device="cuda") for i in range(2)]
+    assert runs[0]["returns"] == runs[1]["returns"] and runs[0]["device"] == "cuda"
+
+
+@needs_cuda
+def test_cuda_resume_equals_an_uninterrupted_run(tmp_path):
+    common = dict(steps=80, overrides=TINY, eval_episodes=2, progress=False, device="cuda", checkpoint_every=40)
+    whole = train("sac-source", PENDULUM, out=tmp_path / "whole", **common)
+    assert train("sac-source", PENDULUM, out=tmp_path / "cut", stop_after=40, **common) is None
+    resumed = train("sac-source", PENDULUM, out=tmp_path / "cut", **common)
+    assert resumed["returns"] == whole["returns"]
+
+
+@needs_cuda
+def test_the_cuda_graph_update_is_deterministic_and_learns_like_the_eager_one(tmp_path):
+    graphed = [train("sac-source", PENDULUM, steps=120, out=tmp_path / f"graph{i}", n_seeds=3, eval_episodes=2,
+                     overrides=TINY | {"cuda_graph": "true"}, progress=False, device="cuda") for i in range(2)]
+    assert graphed[0]["returns"] == graphed[1]["returns"]
+    metrics = [json.loads(line) for line in (tmp_path / "graph0" / "metrics.jsonl").read_text().splitlines()]
+    assert all(abs(m["train"].get("critic/td_loss", 0.0)) < 1e6 for m in metrics)
