@@ -74,6 +74,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import ClassVar, Literal
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -81,7 +82,7 @@ from baselines.limits import POSITIVE, Limit, integer, layer_sizes, number, one_
 from baselines.method import MethodContext
 from baselines.networks import Params, init_mlp, mlp
 from baselines.sac import Metrics, seed_generator
-from baselines.trpo import TRPOAgent, TRPOConfig, gae, on_device
+from baselines.trpo import TRPOAgent, TRPOConfig, gae, on_device, tanh_mlp
 from offdyn_bench.errors import OffdynError
 
 Variant = Literal["matl", "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning"]
@@ -613,3 +614,32 @@ def default_config(variant: str) -> Callable[[], Config]:
 
 BUILDERS: Mapping[str, Callable[[Config, MethodContext], MATL]] = MappingProxyType(
     {variant: _builder(variant) for variant in VARIANTS})
+
+
+def deployed_policies(tensors: Mapping[str, torch.Tensor], action_low: np.ndarray, action_high: np.ndarray
+                      ) -> list[Callable[[np.ndarray], np.ndarray]]:
+    """The deployed policy of every training seed of a MATL-family checkpoint, as functions of one
+    observation returning an action in environment units: the robot agent's clipped Gaussian mean
+    (the simulator agent's for ``direct-transfer``), exactly :meth:`MATL.deploy`.
+
+    For scoring tools that read checkpoints (``offdyn-bench evaluate`` reads SAC-style ``actor.*``
+    networks, which a TRPO agent does not have)."""
+    role = "robot" if "robot.log_std" in tensors else "simulator"
+    if f"{role}.log_std" not in tensors:
+        raise OffdynError("the checkpoint holds no MATL agent (no robot.* or simulator.* tensors)")
+    count = sum(1 for k in tensors if k.startswith(f"{role}.mean."))
+    params = [tensors[f"{role}.mean.{i}"].detach().cpu() for i in range(count)]
+    low, high = np.asarray(action_low, dtype=np.float64), np.asarray(action_high, dtype=np.float64)
+
+    def policy(member: int) -> Callable[[np.ndarray], np.ndarray]:
+        own = [p[member:member + 1] for p in params]
+
+        def act(observation: np.ndarray) -> np.ndarray:
+            with torch.no_grad():
+                x = torch.as_tensor(np.asarray(observation), dtype=torch.float32).view(1, 1, -1)
+                action = tanh_mlp(own, x)[0, 0].clamp(-1.0, 1.0).numpy().astype(np.float64)
+            return low + (action + 1.0) * 0.5 * (high - low)
+
+        return act
+
+    return [policy(member) for member in range(params[0].shape[0])]

@@ -352,3 +352,28 @@ def test_with_the_papers_robot_reward_and_a_fall_cost_only_the_robot_learns_to_f
     # robot agent ends its episodes at once, while independent TRPO learns to balance for longer.
     assert uninformative_curves["matl"].max() < 10
     assert uninformative_curves["independent"][-1].mean() > 50
+
+
+def test_deployed_policies_read_from_a_checkpoint_act_like_the_trained_method(tmp_path):
+    from baselines.matl import deployed_policies
+    from offdyn_bench.tasks import get_task
+
+    for algo in ("matl", "direct-transfer"):
+        _run(algo, tmp_path / algo, steps=400)
+        state = _state(tmp_path / algo)
+        config = Config(variant=algo)
+        config.trpo.hidden_sizes = (16, 16)
+        config.discriminator.hidden_sizes = (16,)
+        method = BUILDERS[algo](config, MethodContext(observation_dim=4, action_dim=1, seeds=(5, 6), task=PENDULUM))
+        method.load_state_dict(state)
+        space = get_task(PENDULUM).make("target").action_space
+        policies = deployed_policies(state, space.low, space.high)
+        observations = torch.randn(2, 4, generator=torch.Generator().manual_seed(0)) * 0.3
+        deployed = method.deploy(observations).numpy().astype(np.float64)
+        expected = space.low + (deployed + 1.0) * 0.5 * (space.high - space.low)
+        assert len(policies) == 2
+        for member in range(2):
+            assert np.allclose(policies[member](observations[member].numpy()), expected[member], atol=1e-6)
+        assert not np.allclose(policies[0](observations[0].numpy()), policies[1](observations[0].numpy()))
+    with pytest.raises(OffdynError, match="holds no MATL agent"):
+        deployed_policies({"actor.0": torch.zeros(1)}, space.low, space.high)
