@@ -72,7 +72,7 @@ import json
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
-from typing import ClassVar, Literal
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -85,7 +85,6 @@ from baselines.sac import Metrics, seed_generator
 from baselines.trpo import TRPOAgent, TRPOConfig, gae, on_device, tanh_mlp
 from offdyn_bench.errors import OffdynError
 
-Variant = Literal["matl", "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning"]
 VARIANTS: tuple[str, ...] = ("matl", "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning")
 ALIGNED_VARIANTS = ("matl", "matl-u", "matl-f")
 """Variants with a discriminator and the robot's auxiliary reward."""
@@ -94,7 +93,6 @@ PRETRAINED_VARIANTS = ("matl-f", "fine-tuning")
 SIMULATOR_RUNS = ("direct-transfer", "matl", "matl-u", "matl-f")
 """Algorithms whose runs hold a trained simulator agent (what ``init_run`` may name)."""
 
-TargetReward = Literal["full", "sparse", "uninformative", "none"]
 TARGET_REWARDS: Mapping[str, str] = MappingProxyType({
     "full": "the environment's reward",
     "sparse": "1 on steps that end near the task's goal, else 0",

@@ -153,7 +153,8 @@ def test_the_discriminator_separates_two_state_distributions_and_rewards_each_ag
     log_d_sim = discriminator.log_simulator_probability(simulator_states)  # D predicts "simulator"
     log_d_robot = discriminator.log_simulator_probability(robot_states)
     assert (log_d_sim > np.log(0.9)).all() and (log_d_robot < np.log(0.1)).all()
-    sim_logits, robot_logits = discriminator.logits(simulator_states).detach(), discriminator.logits(robot_states).detach()
+    sim_logits = discriminator.logits(simulator_states).detach()
+    robot_logits = discriminator.logits(robot_states).detach()
     # The paper's rewards: rho_S = -log D, rho_R = +log D.
     assert torch.allclose(simulator_auxiliary_reward(sim_logits), -log_d_sim)
     assert torch.allclose(robot_auxiliary_reward(robot_logits), log_d_robot)
