@@ -170,18 +170,22 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--runs", type=Path, default=Path("runs/learning"))
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated names of METHODS")
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--source-run", type=Path, help="a finished sac-source run of the same robot whose seed-0 "
+                        "policy collects the dataset (source training does not depend on the target, so any "
+                        "pair of the robot gives the same policy); default: the sac-source run trained here")
     args = parser.parse_args(argv)
     names = args.methods.split(",")
     unknown = [n for n in names if n not in METHODS]
     if unknown:
         parser.error(f"unknown method(s) {unknown}; expected names from {list(METHODS)}")
     runs = args.runs / args.task
-    source_run = run_folder(runs, "sac-source")
+    source_run = args.source_run or run_folder(runs, "sac-source")
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
         # The dataset comes from sac-source: it trains first, next to the methods that need no dataset.
         no_dataset = [pool.submit(train, args.task, runs, n, source_run) for n in names
                       if METHODS[n][0] not in NEEDS_DATASET and n != "sac-source"]
-        train(args.task, runs, "sac-source", source_run)
+        if "sac-source" in names:
+            train(args.task, runs, "sac-source", source_run)
         with_dataset = [pool.submit(train, args.task, runs, n, source_run) for n in names
                         if METHODS[n][0] in NEEDS_DATASET]
         for future in no_dataset + with_dataset:
