@@ -140,10 +140,18 @@ def check_method_on_track(algo: str, track: str) -> None:
 
 def official_dataset(task: str, track: str) -> str | None:
     """The id of ``task``'s official target dataset on ``track`` (None: the track uses none)."""
-    from offdyn_bench.datasets.recipes import dataset_id
+    from offdyn_bench.datasets.recipes import dataset_id, qualities_of
+    from offdyn_bench.tasks import get_task
 
     quality = get_track(track).dataset_quality
-    return None if quality is None else dataset_id(task, quality)
+    if quality is None:
+        return None
+    pair = get_task(task)
+    # The wheel-legged robot's target data is its human operator's, as on H2O's real robot; it has
+    # no source-policy dataset.
+    if quality not in qualities_of(pair) and "human-operator" in qualities_of(pair):
+        quality = "human-operator"
+    return dataset_id(pair, quality)
 
 
 def summary() -> dict[str, object]:

@@ -84,3 +84,11 @@ def test_shipped_manifest_records_both_datasets_with_hashes():
         assert entry.is_built and entry.total_steps == 100_000
         assert entry.recipe.behaviour.kind == "human-operator"
         assert entry.recipe.task_sha256 == task_sha256(get_task(task))  # the code still defines that task
+
+
+def test_offline_track_uses_the_operator_data_as_the_official_dataset():
+    from offdyn_bench.protocol.definition import official_dataset
+
+    assert official_dataset("wheellegged-standstill", "offline-target") == STANDSTILL
+    assert official_dataset("hopper-gravity-0.5", "offline-target") == "offdyn/hopper-gravity-0p5/source-policy-v0"
+    assert official_dataset("wheellegged-movestraight", "online-target") is None
