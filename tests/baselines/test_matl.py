@@ -214,10 +214,16 @@ def test_matl_with_zero_alignment_weight_is_exactly_two_independent_trpo_learner
     assert all(torch.equal(state[k], robot_alone[k]) for k in robot_keys)
     assert all(torch.equal(state[k], simulator_alone[k]) for k in simulator_keys)
     assert matl["returns"] == independent["returns"]
-    # The control: with the auxiliary reward on, the robot learns something else.
+    # The control: with the auxiliary reward on, the robot learns something else...
     aligned = _run("matl", tmp_path / "aligned", alignment_weight="0.1", target_reward="uninformative")
     assert not torch.equal(_state(tmp_path / "aligned")["robot.mean.0"], robot_alone["robot.mean.0"])
+    assert not torch.equal(_state(tmp_path / "aligned")["simulator.mean.0"], simulator_alone["simulator.mean.0"])
     assert aligned["returns"] != independent["returns"]
+    # ... and MATL-U's simulator agent, which never gets an auxiliary reward, is direct-transfer's.
+    _run("matl-u", tmp_path / "unilateral", alignment_weight="0.1", target_reward="uninformative")
+    unilateral = _state(tmp_path / "unilateral")
+    assert all(torch.equal(unilateral[k], simulator_alone[k]) for k in simulator_keys)
+    assert not torch.equal(unilateral["robot.mean.0"], robot_alone["robot.mean.0"])
 
 
 def test_the_robot_takes_one_target_step_per_ten_and_direct_transfer_none(tmp_path):
