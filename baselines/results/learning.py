@@ -181,10 +181,11 @@ def main(argv: list[str] | None = None) -> None:
     runs = args.runs / args.task
     source_run = args.source_run or run_folder(runs, "sac-source")
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        # The dataset comes from sac-source: it trains first, next to the methods that need no dataset.
+        # The dataset comes from sac-source: unless --source-run names a finished one, sac-source trains
+        # first, next to the methods that need no dataset.
         no_dataset = [pool.submit(train, args.task, runs, n, source_run) for n in names
-                      if METHODS[n][0] not in NEEDS_DATASET and n != "sac-source"]
-        if "sac-source" in names:
+                      if METHODS[n][0] not in NEEDS_DATASET and (n != "sac-source" or args.source_run)]
+        if "sac-source" in names and not args.source_run:
             train(args.task, runs, "sac-source", source_run)
         with_dataset = [pool.submit(train, args.task, runs, n, source_run) for n in names
                         if METHODS[n][0] in NEEDS_DATASET]
