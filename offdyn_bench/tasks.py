@@ -227,7 +227,8 @@ def _grid() -> list[TaskPair]:
         _shifted("InvertedPendulum", "gravity", "3.0", [Gravity(scale=3.0)], description="target gravity x3"),
         _shifted("InvertedPendulum", "action-delay", "1", [ActionDelay(steps=1)],
                  description="target commands applied one control step (40 ms) late"),
-        _shifted("InvertedPendulum", "rail-offset", "hard", [JointRange(target="slider", scale=0.2), ActionBias(value=1.0)],
+        _shifted("InvertedPendulum", "rail-offset", "hard",
+                 [JointRange(target="slider", scale=0.2), ActionBias(value=1.0)],
                  description="target slider range x0.2 and motor command offset +1.0 (a third of the range)"),
     ]
     # The wheel-legged balancer (issue 12): the clean model against the "real robot", one pair per task.

@@ -21,7 +21,8 @@ SMALL = SACConfig(hidden_sizes=(16,), batch_size=8)
 
 def _random_batch(seeds: int, size: int, obs_dim: int = 3, action_dim: int = 1, seed: int = 0) -> Batch:
     g = torch.Generator().manual_seed(seed)
-    return Batch(torch.randn(seeds, size, obs_dim, generator=g), torch.rand(seeds, size, action_dim, generator=g) * 2 - 1,
+    return Batch(torch.randn(seeds, size, obs_dim, generator=g),
+                 torch.rand(seeds, size, action_dim, generator=g) * 2 - 1,
                  torch.randn(seeds, size, generator=g), torch.randn(seeds, size, obs_dim, generator=g),
                  (torch.rand(seeds, size, generator=g) < 0.2).float())
 
@@ -227,7 +228,6 @@ def test_dap_u_members_get_their_own_minibatches_and_noise():
         for p in classifiers.sa_params + classifiers.sas_params:
             p.copy_(p[::3].repeat_interleave(3, dim=0))
     same = _random_batch(2, 8, seed=3)
-    same = same._replace(actions=same.actions)
     clean, _ = classifiers.logits(same.observations, same.actions, same.next_observations)
     noisy, _ = classifiers.logits(same.observations, same.actions, same.next_observations, noise_std=0.5)
     torch.testing.assert_close(clean[0], clean[1])
