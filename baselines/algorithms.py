@@ -39,7 +39,7 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType({a.name: a for a in [
               cql.Config, cql.build, needs_dataset=True, track="offline-target"),
     Algorithm("darc", "DARC with the fixed target dataset (offline-target)",
               darc.Config, darc.build, needs_dataset=True, track="offline-target"),
-    Algorithm("darc-online", "DARC as published: one target step per ten source steps (online-target)",
+    Algorithm("darc-online", "DARC with the paper's settings, one target step per ten source steps (online-target)",
               lambda: darc.Config(target_data="online"), darc.build, needs_dataset=False, track="online-target"),
     Algorithm("h2o", "H2O: dynamics-aware hybrid offline (target dataset) and online (source) RL",
               h2o.Config, h2o.build, needs_dataset=True, track="offline-target"),
