@@ -211,13 +211,13 @@ def test_minari_ids_go_through_the_same_loader(monkeypatch):
     """Episodes (T+1 observations, T actions) become transitions; a fake stands in for a local dataset."""
     import types
 
-    import minari
-
     rng = np.random.default_rng(0)
     episodes = [types.SimpleNamespace(observations=rng.normal(size=(t + 1, 4)), actions=rng.uniform(-3, 3, (t, 1)),
                                       rewards=np.ones(t), terminations=np.arange(t) == t - 1, truncations=np.zeros(t))
                 for t in (5, 7)]
-    monkeypatch.setattr(minari, "load_dataset", lambda dataset_id: types.SimpleNamespace(
+    # The loader reads installed datasets through the suite's load_installed (which names the
+    # install command when one is missing); a fake installed dataset stands in for it here.
+    monkeypatch.setattr("offdyn_bench.datasets.ensure.load_installed", lambda dataset_id: types.SimpleNamespace(
         iterate_episodes=lambda: iter(episodes)))
     data, provenance = load_dataset("offdyn/test-pendulum/random-v0", get_task(PENDULUM))
     assert len(data) == 12 and provenance["kind"] == "minari"
