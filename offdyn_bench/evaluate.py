@@ -128,11 +128,25 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
     names = sorted((k for k in tensors if k.startswith("actor.") and k.split(".")[1].isdigit()),
                    key=lambda k: int(k.split(".")[1]))
     params = [tensors[k].detach().cpu().numpy() for k in names]
-    if not params or len(params) % 2:
-        raise EvaluationError(f"{str(run_dir)!r}: the checkpoint holds no actor network")
     agents: list[tuple[int, Agent]] = []
     hashes = {}
-    for member, seed in enumerate(config["seeds"]):
+    if not params and any(k.endswith(".log_std") for k in tensors):
+        # A TRPO-based run (the MATL family): its own module knows its deployed policy.
+        from baselines.matl import deployed_policies
+
+        try:
+            policies = deployed_policies(tensors, space.low, space.high)
+        except OffdynError as error:
+            raise EvaluationError(f"{str(run_dir)!r}: {error}") from None
+        role = "robot" if "robot.log_std" in tensors else "simulator"
+        mean_params = sorted(k for k in tensors if k.startswith(f"{role}.mean."))
+        for member, seed in enumerate(config["seeds"]):
+            agents.append((int(seed), _FunctionAgent(policies[member])))
+            hashes[str(seed)] = _sha256_arrays([tensors[k][member].detach().cpu().numpy() for k in mean_params])
+        params = None
+    elif not params or len(params) % 2:
+        raise EvaluationError(f"{str(run_dir)!r}: the checkpoint holds no actor network")
+    for member, seed in enumerate(config["seeds"] if params is not None else []):
         layers = []
         for i in range(len(params) // 2):
             weight, bias = params[2 * i][member].T, params[2 * i + 1][member].reshape(-1)

@@ -180,3 +180,23 @@ def test_score_report_by_hand():
     assert not raw_only.aggregates and "missing for b" in raw_only.note
     with pytest.raises(ProtocolError, match="methods cover different tasks"):
         score_report(records[:3], references=references)
+
+
+def test_a_matl_run_is_evaluated_with_its_robot_policy(tmp_path):
+    """TRPO-based runs carry no SAC actor: evaluate reads their deployed (robot) policy."""
+    small = {"trpo.hidden_sizes": "[16, 16]", "discriminator.hidden_sizes": "[16]", "rollout_steps": "20",
+             "trpo.value_iterations": "5"}
+    run = tmp_path / "matl"
+    train("matl", PENDULUM, steps=400, out=run, n_seeds=2, overrides=small, eval_episodes=1, progress=False)
+    record = evaluate(run, episodes=2, progress=False)
+    assert record["method"] == "matl" and record["track"] == "online-target"
+    assert [s["seed"] for s in record["seeds"]] == [0, 1] and set(record["agent"]["policy_sha256"]) == {"0", "1"}
+    # The trainer's final evaluation used the same deployed policy on episode seed 1,000,000.
+    import gymnasium
+
+    from offdyn_bench.evaluate import episode_returns, load_run_agents
+
+    result = json.loads((run / "result.json").read_text())
+    env = gymnasium.make("offdyn/InvertedPendulum-gravity-3.0-target-v0")
+    for seed, agent in load_run_agents(run).agents:
+        assert episode_returns(agent, env, [1_000_000], "t") == pytest.approx(result["returns"][str(seed)], rel=1e-5)
