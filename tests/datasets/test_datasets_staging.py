@@ -59,7 +59,10 @@ def test_staging_of_a_killed_process_is_removed_and_a_live_ones_kept(tmp_path: p
     killed, alive = start_python(HOLD_STAGING, root), start_python(HOLD_STAGING, root)
     try:
         killed_dir, alive_dir = killed.stdout.readline().strip(), alive.stdout.readline().strip()
-        assert killed_dir and alive_dir, killed.stderr.read() + alive.stderr.read()
+        if not (killed_dir and alive_dir):  # a child failed: stop both before reading why
+            for child in (killed, alive):
+                child.kill()
+            pytest.fail("a child did not stage: " + killed.communicate()[1] + alive.communicate()[1])
         killed.kill()  # SIGKILL: no finally block runs
         killed.wait()
         assert sorted([killed_dir, alive_dir]) == staging_entries(root)  # what the bug left forever
