@@ -133,8 +133,16 @@ def staging(root: pathlib.Path) -> Iterator[pathlib.Path]:
     whatever happens (stale ones of dead processes are removed on entry)."""
     clean_stale_staging(root)
     base = root / STAGING_DIR
-    base.mkdir(parents=True, exist_ok=True)
-    path = pathlib.Path(tempfile.mkdtemp(prefix=owner_tag(), dir=base))
+    for attempt in range(100):
+        base.mkdir(parents=True, exist_ok=True)
+        try:
+            path = pathlib.Path(tempfile.mkdtemp(prefix=owner_tag(), dir=base))
+            break
+        except FileNotFoundError:
+            # Another process's cleanup removed the (then empty) staging area between our
+            # mkdir and mkdtemp: make it again.
+            if attempt == 99:
+                raise
     try:
         yield path
     finally:
