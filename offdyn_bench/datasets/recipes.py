@@ -289,10 +289,13 @@ def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,
 def default_tasks() -> list[TaskPair]:
     """The default set: one level of every shift family for each locomotion robot (the middle
     of the grid: x0.5 scales, the first part at ``medium``, action noise 0.5), plus every H2O
-    setting, and both wheel-legged tasks. Everything else in the grid builds on demand."""
+    setting, both wheel-legged tasks, the MuJoCo-to-DART pairs and the protocol's core suite.
+    Everything else in the grid builds on demand."""
+    from offdyn_bench.protocol.definition import CORE_SUITE
+
     chosen = []
     for pair in TASKS.values():
-        if pair.robot in HUMAN_OPERATOR_ROBOTS:
+        if pair.robot in HUMAN_OPERATOR_ROBOTS or pair.target_engine != "mujoco" or pair.name in CORE_SUITE:
             chosen.append(pair)
             continue
         if pair.robot not in ("Ant", "HalfCheetah", "Hopper", "Walker2d"):
