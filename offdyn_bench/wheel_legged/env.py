@@ -62,6 +62,15 @@ Terminated when the robot falls (``|tilt| > 0.6`` rad, about 34 degrees, where a
 build no longer recovers). Truncated after 30 s (6000 steps, ``standstill``) or 20 s (4000 steps,
 ``movestraight``) by the registration's ``max_episode_steps``.
 
+## Arguments
+
+| argument | default | meaning |
+|---|---|---|
+| ``task`` | ``"standstill"`` | ``standstill`` or ``movestraight`` (registered pairs pass it) |
+| ``xml_file`` | ``assets/robots/wheel_legged.xml`` | the MJCF |
+| ``frame_skip`` | 5 | physics steps (1 ms) per control step |
+| ``reset_noise_scale`` | 0.02 | half-width of the uniform reset noise on tilt, tilt rate and velocity |
+
 ## Version History
 
 - v0: first version.
