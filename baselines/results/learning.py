@@ -50,6 +50,10 @@ METHODS: dict[str, tuple[str, dict[str, str]]] = {
     # DAP's open choices (issue 9, point 4), each against the default:
     "dap[classifier_source_action=target]": ("dap", FAST | OFF_DYNAMICS | {"classifier_source_action": "target"}),
     "dap[regularized_actions=mean]": ("dap", FAST | OFF_DYNAMICS | {"regularized_actions": "mean"}),
+    # DARC's published settings against the H2O paper's variant (baselines.darc.h2o_variant_config):
+    "darc[h2o_variant]": ("darc", FAST | OFF_DYNAMICS | {
+        "classifier.hidden_sizes": "[256]", "classifier.soft_clip_logits": "true",
+        "sac.reward_scale": "1.0", "sac.target_entropy_per_action_dim": "-1.0"}),
 }
 NEEDS_DATASET = {"cql", "h2o", "darc", "dap", "dap-u"}
 
