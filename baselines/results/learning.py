@@ -45,11 +45,13 @@ METHODS: dict[str, tuple[str, dict[str, str]]] = {
     "cql": ("cql", {k: v for k, v in FAST.items() if k != "random_steps"}),
     "h2o": ("h2o", FAST),
     "darc": ("darc", FAST | OFF_DYNAMICS),
-    "dap": ("dap", FAST | OFF_DYNAMICS),
-    "dap-u": ("dap-u", FAST | OFF_DYNAMICS),
-    # DAP's open choices (issue 9, point 4), each against the default:
-    "dap[classifier_source_action=target]": ("dap", FAST | OFF_DYNAMICS | {"classifier_source_action": "target"}),
+    # DAP's open choices (issue 9, point 4). "sampled" was the default before issue 9; "mean" is now.
+    "dap": ("dap", FAST | OFF_DYNAMICS | {"regularized_actions": "sampled"}),
+    "dap-u": ("dap-u", FAST | OFF_DYNAMICS | {"regularized_actions": "sampled"}),
+    "dap[classifier_source_action=target]": ("dap", FAST | OFF_DYNAMICS | {"classifier_source_action": "target",
+                                                                           "regularized_actions": "sampled"}),
     "dap[regularized_actions=mean]": ("dap", FAST | OFF_DYNAMICS | {"regularized_actions": "mean"}),
+    "dap-u[regularized_actions=mean]": ("dap-u", FAST | OFF_DYNAMICS | {"regularized_actions": "mean"}),
     # DARC's published settings against the H2O paper's variant (baselines.darc.h2o_variant_config):
     "darc[h2o_variant]": ("darc", FAST | OFF_DYNAMICS | {
         "classifier.hidden_sizes": "[256]", "classifier.soft_clip_logits": "true",

@@ -193,7 +193,7 @@ def _dap(config: dap.Config, seeds: tuple[int, ...] = (0,)) -> dap.DAP:
 
 @pytest.mark.parametrize("choice, half", [("source", 0), ("target", 1)])
 def test_dap_classifiers_see_the_chosen_action(choice, half):
-    method = _dap(dap.Config(sac=SMALL, classifier_source_action=choice))
+    method = _dap(dap.Config(sac=SMALL, classifier_source_action=choice, regularized_actions="sampled"))
     batch = method.buffer.sample(8)
     source, target, member_batches = method.classifier_batches(batch)
     assert torch.equal(source.actions, method.split(batch.actions)[half]) and not member_batches
@@ -201,7 +201,7 @@ def test_dap_classifiers_see_the_chosen_action(choice, half):
 
 
 def test_dap_regularizer_on_mean_actions_leaves_the_reward_and_pulls_the_means_together():
-    sampled = _dap(dap.Config(sac=SMALL, warmup_steps=10**6))
+    sampled = _dap(dap.Config(sac=SMALL, warmup_steps=10**6, regularized_actions="sampled"))
     means = _dap(dap.Config(sac=SMALL, warmup_steps=10**6, regularized_actions="mean"))
     batch = sampled.buffer.sample(8)
     assert (sampled.reward_correction(batch, 0) < 0).all()

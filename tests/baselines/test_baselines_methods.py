@@ -56,7 +56,7 @@ def test_darc_with_zero_correction_is_exactly_sac(tmp_path, pendulum_dataset):
 
 def test_dap_with_tied_actions_gets_the_darc_reward():
     context = MethodContext(observation_dim=4, action_dim=2, seeds=(0, 1), target_data=_dataset(action_dim=2))
-    dap_method = dap.DAP(dap.Config(warmup_steps=0, regularization_weight=5.0), context)
+    dap_method = dap.DAP(dap.Config(warmup_steps=0, regularization_weight=5.0, regularized_actions="sampled"), context)
     # DAP keeps the classifiers of the H2O variant of DARC (256 wide, clipped logits).
     darc_variant = darc.h2o_variant_config()
     darc_variant.warmup_steps = 0
