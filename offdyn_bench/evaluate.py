@@ -167,7 +167,11 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
     return LoadedAgents(agents=agents, method=config["algo"], task=pair.name, steps=int(config["steps"]),
                         dataset=dataset, train_command=train_command,
                         description={"kind": "run", "path": str(run_dir), "checkpoint": checkpoint.name,
-                                     "policy_sha256": hashes})
+                                     "policy_sha256": hashes,
+                                     # The command above omits --set overrides: config.json holds
+                                     # the full configuration, pinned here by its hash.
+                                     "config_sha256": hashlib.sha256((run_dir / "config.json").read_bytes())
+                                     .hexdigest()})
 
 
 def load_factory_agents(spec: str, task: str, seeds: Sequence[int]) -> LoadedAgents:
