@@ -14,16 +14,17 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from collections.abc import Callable
 
 import gymnasium
 import numpy as np
 
 import offdyn_bench  # noqa: F401  (registers the ids)
+# The same timing loop and clocks as the env step-rate benchmark (run as a script, this folder is
+# on sys.path).
+from env_step_rate import CLOCKS, steps_per_second
 
 ROBOTS = ("Hopper", "Walker2d")
-CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
 
 
 def cases(robot: str) -> list[tuple[str, str, dict]]:
@@ -33,16 +34,6 @@ def cases(robot: str) -> list[tuple[str, str, dict]]:
         ("DART target (ODE detector)", f"offdyn/{robot}-dart-target-v0", {}),
         ("DART target (Bullet detector)", f"offdyn/{robot}-dart-target-v0", {"collision_detector": "bullet"}),
     ]
-
-
-def steps_per_second(env: gymnasium.Env, actions: np.ndarray, clock: Callable[[], float]) -> float:
-    env.reset(seed=0)
-    start = clock()
-    for action in actions:
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
-    return len(actions) / (clock() - start)
 
 
 def measure(robot: str, steps: int, rounds: int, clock: Callable[[], float]) -> list[tuple[str, float, float]]:

@@ -17,19 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from leaderboard.submission import Submission
+from offdyn_bench.protocol.statistics import Interval
 
 BOOTSTRAP_REPS = 2000
 BOOTSTRAP_SEED = 0
 CONFIDENCE = 0.95
 PROFILE_TAUS = np.linspace(-25.0, 125.0, 151)
 """Thresholds of the performance profiles on the normalized scale (0 random, 100 oracle)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Interval:
-    point: float
-    low: float
-    high: float
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,10 +81,6 @@ class Board:
     improvements: tuple[Improvement, ...]
 
 
-def _interval(value: object) -> Interval:
-    return Interval(float(value.point), float(value.low), float(value.high))  # type: ignore[attr-defined]
-
-
 def normalization_for(budget: str, tasks: Sequence[str], references: Path | None) -> Normalization:
     """The tasks of ``tasks`` that have a random and an oracle reference at ``budget``."""
     from offdyn_bench.protocol import ProtocolError, reference_pair
@@ -122,9 +112,9 @@ def _entry(submission: Submission, normalization: Normalization, reference_metho
                                           seed=BOOTSTRAP_SEED)[name]
     return Entry(submission=submission, is_reference=submission.method in reference_methods,
                  raw_mean=raw_mean, raw_seed_std=raw_std, normalized=normalized,
-                 iqm=_interval(aggregates["iqm"]) if aggregates else None,
-                 mean=_interval(aggregates["mean"]) if aggregates else None,
-                 optimality_gap=_interval(aggregates["optimality_gap"]) if aggregates else None)
+                 iqm=aggregates["iqm"] if aggregates else None,
+                 mean=aggregates["mean"] if aggregates else None,
+                 optimality_gap=aggregates["optimality_gap"] if aggregates else None)
 
 
 def _sort_key(entry: Entry) -> tuple[object, ...]:
@@ -158,7 +148,7 @@ def score_board(submissions: Sequence[Submission], *, references: Path | None = 
                 probability = statistics.probability_of_improvement_ci(
                     x.normalized, y.normalized, reps=BOOTSTRAP_REPS, confidence=CONFIDENCE, seed=seed)
                 improvements.append(Improvement(x.submission.method, y.submission.method, track, budget,
-                                                _interval(probability)))
+                                                probability))
     return Board(tasks=tasks, normalizations=normalizations, entries=tuple(entries),
                  improvements=tuple(improvements))
 
