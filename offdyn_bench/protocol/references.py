@@ -114,7 +114,12 @@ def normalized_score(returns: float | Sequence[float] | np.ndarray, task: str, b
     values = np.asarray(returns, dtype=np.float64)
     if not np.all(np.isfinite(values)):
         raise ProtocolError(f"returns for {task!r} contain NaN or infinite values")
-    return 100.0 * (values - j_random) / (j_oracle - j_random)
+    return normalize(values, j_random, j_oracle)
+
+
+def normalize(returns: np.ndarray, j_random: float, j_oracle: float) -> np.ndarray:
+    """The protocol's normalized score: 0 for the random policy, 100 for the oracle."""
+    return 100.0 * (returns - j_random) / (j_oracle - j_random)
 
 
 def _write(data: dict[str, Any], path: pathlib.Path) -> None:

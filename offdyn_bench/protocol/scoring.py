@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from offdyn_bench.protocol.definition import ProtocolError
-from offdyn_bench.protocol.references import reference_pair
+from offdyn_bench.protocol.references import normalize, reference_pair
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,5 +81,5 @@ def method_scores(method: str, records: Iterable[Mapping[str, Any]], budget: str
             except ProtocolError:
                 missing.append(task)
                 continue
-        normalized[:, j] = 100.0 * (raw[:, j] - j_random) / (j_oracle - j_random)
+        normalized[:, j] = normalize(raw[:, j], j_random, j_oracle)
     return MethodScores(method, tasks, seeds, raw, None if missing else normalized, tuple(missing))
