@@ -44,6 +44,10 @@ EXAMPLES: dict[str, dict] = {
     "armature": {"target": "thigh_joint", "value": 0.2},
     "gear": {"target": "thigh_joint", "scale": 0.7},
     "joint_range": {"target": "foot_joint", "scale": 0.5},
+    "joint_limit": {"target": "thigh_joint", "side": "lower", "shift": -0.3},
+    "joint_limit_solref": {"target": "foot_joint", "timeconst": 0.05, "dampratio": 0.7},
+    "body_offset": {"target": "foot", "axis": "x", "offset": 0.05},
+    "geom_size": {"target": "foot_geom", "scale": 1.5},
     "limb_size": {"target": "leg", "scale": 0.8},
     "contact_solref": {"timeconst": 0.04, "dampratio": 0.8},
     "contact_solimp": {"dmin": 0.7, "dmax": 0.9, "width": 0.002},
@@ -110,7 +114,21 @@ def test_effects_are_frozen():
         ({"kind": "damping", "value": 1e5}, "expected a number in [0, 10000]"),
         ({"kind": "friction_cone", "cone": ["elliptic"]}, "invalid cone=('elliptic',); expected one of"),
         ({"kind": "gravity", "scale": 1.0, "target": "torso"}, "expected None: this effect acts on the whole model"),
-        ({"kind": "joint_range", "scale": 1.5, "target": "thigh_joint"}, "expected a number in (0, 1]"),
+        ({"kind": "joint_range", "scale": 10.5, "target": "thigh_joint"}, "invalid scale=10.5; expected a number in (0, 10]"),
+        ({"kind": "joint_range", "scale": 0.0, "target": "thigh_joint"}, "expected a number in (0, 10]"),
+        ({"kind": "joint_limit", "side": "left", "shift": 0.1, "target": "thigh_joint"},
+         "invalid side='left'; expected one of ['lower', 'upper']"),
+        ({"kind": "joint_limit", "side": "upper", "shift": 7.0, "target": "thigh_joint"},
+         "invalid shift=7.0; expected a number in [-6.28319, 6.28319]"),
+        ({"kind": "joint_limit", "side": "upper", "shift": 0.1}, "the name of the joint whose limit moves"),
+        ({"kind": "joint_limit_solref", "timeconst": 0.0}, "invalid timeconst=0.0; expected a number in (0, 1]"),
+        ({"kind": "joint_limit_solref", "timeconst": 0.02, "dampratio": -1}, "invalid dampratio=-1"),
+        ({"kind": "body_offset", "axis": "w", "offset": 0.1, "target": "foot"},
+         "invalid axis='w'; expected one of ['x', 'y', 'z']"),
+        ({"kind": "body_offset", "axis": "z", "offset": 1.5, "target": "foot"}, "expected a number in [-1, 1]"),
+        ({"kind": "body_offset", "axis": "z", "offset": 0.1}, "the name of the body to move"),
+        ({"kind": "geom_size", "scale": 0.0}, "invalid scale=0.0; expected a number in [0.01, 10]"),
+        ({"kind": "geom_size", "scale": 11}, "expected a number in [0.01, 10]"),
         ({"kind": "contact_solimp", "dmin": 0.95, "dmax": 0.9, "width": 0.001}, "dmin <= dmax"),
         ({"kind": "friction_cone", "cone": "round"}, "one of ['elliptic', 'pyramidal']"),
         ({"kind": "obs_bias", "target": -2, "value": 0.1}, "a non-negative observation index"),
@@ -148,7 +166,7 @@ def test_unknown_target_names_the_closest_body():
 
 
 def test_joint_range_rejects_unlimited_joint():
-    with pytest.raises(OffdynError, match="joint 'rootx' has no range to shrink"):
+    with pytest.raises(OffdynError, match="effect 'joint_range': joint 'rootx' is not limited, so it has no range"):
         ENV_CLASSES["Hopper"](model_effects=[JointRange(target="rootx", scale=0.5)])
 
 
@@ -231,12 +249,16 @@ def test_friction_scales_every_geom_so_every_contact_scales():
     np.testing.assert_allclose(low.geom_friction, base.geom_friction * 0.5)
 
 
-def test_joint_range_shrinks_about_the_reference_pose():
+def test_joint_range_scales_about_the_reference_pose():
     base = compile_model(_hopper_xml())
     model = compile_model(_hopper_xml(), [JointRange(target="thigh_joint", scale=0.2)])
+    wider = compile_model(_hopper_xml(), [JointRange(target="foot_joint", scale=2.0)])
     j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "thigh_joint")
     np.testing.assert_allclose(np.degrees(base.jnt_range[j]), [-150.0, 0.0])
     np.testing.assert_allclose(np.degrees(model.jnt_range[j]), [-30.0, 0.0])
+    foot = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "foot_joint")
+    np.testing.assert_allclose(np.degrees(base.jnt_range[foot]), [-45.0, 45.0])
+    np.testing.assert_allclose(np.degrees(wider.jnt_range[foot]), [-90.0, 90.0])
 
 
 # --- parameter ranges: every parameter has one, and nothing outside it is ever built --------
@@ -333,11 +355,24 @@ def _valid_hopper_effects(draw: st.DrawFn) -> dict:
     return data
 
 
+def _closes_the_range(data: dict) -> bool:
+    """Whether a ``joint_limit`` example would put its joint's lower limit at or above the upper."""
+    if data["kind"] != "joint_limit":
+        return False
+    model = compile_model(_hopper_xml())
+    low, high = model.jnt_range[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, data["target"])]
+    return low + data["shift"] >= high if data["side"] == "lower" else high + data["shift"] <= low
+
+
 @hypothesis.settings(max_examples=40, deadline=None, suppress_health_check=[hypothesis.HealthCheck.too_slow])
 @hypothesis.given(data=_valid_hopper_effects())
 def test_every_value_in_range_builds_a_hopper_that_steps(data):
     from offdyn_bench.envs import make_robot_env
 
+    if _closes_the_range(data):  # the one in-range value that is not a model: refused, naming the joint
+        with pytest.raises(OffdynError, match=f"limit of joint '{data['target']}'.*must stay below"):
+            make_robot_env("Hopper", [data])
+        return
     env = make_robot_env("Hopper", [data])
     env.reset(seed=0)
     for _ in range(3):

@@ -16,6 +16,7 @@ from offdyn_bench.effects.channel import (
 )
 from offdyn_bench.effects.model import (
     Armature,
+    BodyOffset,
     ContactSolimp,
     ContactSolref,
     Damping,
@@ -23,8 +24,11 @@ from offdyn_bench.effects.model import (
     FrictionCone,
     FrictionLoss,
     Gear,
+    GeomSize,
     Gravity,
     Integrator,
+    JointLimit,
+    JointLimitSoftness,
     JointRange,
     LimbSize,
     Mass,
@@ -39,7 +43,8 @@ __all__ = [
     "EFFECT_KINDS", "Effect", "ModelEffect", "ChannelEffect", "ChannelEffects",
     "effects_from_dicts", "effects_to_dicts", "compile_model", "apply_model_effects", "split_effects",
     "Gravity", "Friction", "Mass", "Damping", "FrictionLoss", "Armature", "Gear", "JointRange",
-    "LimbSize", "ContactSolref", "ContactSolimp", "FrictionCone", "Integrator", "NoSlip",
+    "JointLimit", "JointLimitSoftness", "BodyOffset", "GeomSize", "LimbSize", "ContactSolref",
+    "ContactSolimp", "FrictionCone", "Integrator", "NoSlip",
     "ActionNoise", "ActionDeadzone", "ActionBias", "ActionGain", "ActionSaturation", "ActionDelay",
     "ObsNoise", "ObsBias", "ObsDelay",
 ]

@@ -1,8 +1,9 @@
 """Model effects: changes to the compiled MuJoCo model, applied once at construction.
 
-Most effects edit fields of a compiled ``mujoco.MjModel`` in place (cheap enough to build many
-candidate models during gap diagnosis); ``limb_size`` changes geometry and so edits the
-``mujoco.MjSpec`` before compilation. :func:`compile_model` runs both stages and then recomputes
+Most effects edit fields of a compiled ``mujoco.MjModel`` in place, cheap enough to build many
+candidate models during gap diagnosis (``geom_size`` and ``body_offset`` too: they leave mass and
+inertia alone); ``limb_size`` changes geometry with its mass and so edits the ``mujoco.MjSpec``
+before compilation. :func:`compile_model` runs both stages and then recomputes
 the compiler's derived constants (``mj_setConst``) so masses, inertias and invweights stay
 consistent.
 """
@@ -10,6 +11,7 @@ consistent.
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
@@ -261,41 +263,271 @@ class Gear(ModelEffect):
         model.actuator_gear[actuator_ids(model, self.target)] *= self.scale
 
 
+def _limited_joint(model: mujoco.MjModel, kind: str, name: str, *, hinge_or_slide: bool) -> int:
+    """The id of the named joint, refused (naming it) when it has no limits to act on."""
+    j = int(joint_ids(model, name)[0])
+    if not model.jnt_limited[j]:
+        raise OffdynError(f"effect {kind!r}: joint {name!r} is not limited, so it has no range to change")
+    if hinge_or_slide and int(model.jnt_type[j]) not in (int(mujoco.mjtJoint.mjJNT_HINGE),
+                                                         int(mujoco.mjtJoint.mjJNT_SLIDE)):
+        raise OffdynError(f"effect {kind!r}: joint {name!r} is not a hinge or slide joint")
+    return j
+
+
+def _limited_joints(model: mujoco.MjModel, kind: str, target: str | None, *, hinge_or_slide: bool) -> np.ndarray:
+    """A named limited joint, or (``None``) every limited actuated joint."""
+    if target is not None:
+        return np.array([_limited_joint(model, kind, target, hinge_or_slide=hinge_or_slide)])
+    return np.array([j for j in actuated_joint_ids(model) if model.jnt_limited[j]], dtype=int)
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class JointRange(ModelEffect):
-    """Shrink a joint's range by ``scale`` towards its reference position: the kinematic shift.
+    """Scale a joint's range by ``scale`` about its reference position: the kinematic shift.
 
-    The range shrinks about the joint's reference position (``qpos0``, clipped into the range),
-    so the nominal pose stays reachable: Hopper's thigh range [-150, 0] deg at scale 0.2 becomes
-    [-30, 0] deg. ``target=None`` shrinks every limited actuated joint.
+    Below 1 the range shrinks, above 1 it widens; limits are in rad (hinge) or m (slide). The
+    range scales about the joint's reference position (``qpos0``, clipped into the range), so the
+    nominal pose stays reachable: Hopper's thigh range [-150, 0] deg becomes [-30, 0] deg at scale
+    0.2 and [-300, 0] deg at scale 2. ``target=None`` scales every limited actuated joint.
     """
 
     kind: ClassVar[str] = "joint_range"
     target_type: ClassVar = "joint"
     value_field: ClassVar[str] = "scale"
     fields: ClassVar = ("jnt_range",)
-    ranges: ClassVar = {"scale": Interval(0.0, 1.0, low_open=True, unit="x nominal")}
+    ranges: ClassVar = {"scale": Interval(0.0, 10.0, low_open=True, unit="x nominal")}
     scale: float
 
-    def _joints(self, model: mujoco.MjModel) -> np.ndarray:
-        joints = joint_ids(model, self.target)
-        if self.target is None:
-            return np.array([j for j in joints if model.jnt_limited[j]], dtype=int)
-        j = int(joints[0])
-        if not model.jnt_limited[j]:
-            raise OffdynError(f"effect 'joint_range': joint {self.target!r} has no range to shrink")
-        if int(model.jnt_type[j]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
-            raise OffdynError(f"effect 'joint_range': joint {self.target!r} is not a hinge or slide joint")
-        return joints
-
     def check_target(self, model: mujoco.MjModel) -> None:
-        self._joints(model)
+        _limited_joints(model, self.kind, self.target, hinge_or_slide=True)  # type: ignore[arg-type]
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
-        for j in self._joints(model):
+        for j in _limited_joints(model, self.kind, self.target, hinge_or_slide=True):  # type: ignore[arg-type]
             low, high = model.jnt_range[j]
             ref = float(np.clip(model.qpos0[model.jnt_qposadr[j]], low, high))
             model.jnt_range[j] = [ref + self.scale * (low - ref), ref + self.scale * (high - ref)]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class JointLimit(ModelEffect):
+    """Move one limit of a hinge or slide joint by ``shift`` (rad or m); the other stays put.
+
+    Two models of one robot often disagree on a single stop (a knee that bends further, a hip
+    whose upper stop sits elsewhere), which no scaling about the reference pose describes.
+    ``side`` picks the limit, ``lower`` or ``upper``; a positive ``shift`` moves it towards larger
+    joint positions, so a negative shift of the lower limit (or a positive one of the upper)
+    widens the range. The target is required and must be a limited hinge or slide joint. A shift
+    that would put the lower limit at or above the upper one is refused, naming both limits.
+    """
+
+    kind: ClassVar[str] = "joint_limit"
+    target_type: ClassVar = "joint"
+    value_field: ClassVar[str] = "shift"
+    fields: ClassVar = ("jnt_range",)
+    ranges: ClassVar = {"side": OneOf(("lower", "upper")),
+                        "shift": Interval(-2 * math.pi, 2 * math.pi, unit="rad (m)")}
+    side: str
+    shift: float
+
+    def validate(self) -> None:
+        if self.target is None:
+            self._invalid("target", None, "the name of the joint whose limit moves")
+
+    def _shifted(self, model: mujoco.MjModel) -> tuple[int, np.ndarray]:
+        """The joint's id and its range with the limit moved; refused if the range would close."""
+        j = _limited_joint(model, self.kind, str(self.target), hinge_or_slide=True)
+        old = model.jnt_range[j].copy()
+        new = old.copy()
+        new[0 if self.side == "lower" else 1] += self.shift
+        if not new[0] < new[1]:
+            raise OffdynError(
+                f"effect {self.kind!r}: moving the {self.side} limit of joint {self.target!r} by {self.shift:g} "
+                f"gives lower={new[0]:g} >= upper={new[1]:g} (the range is [{old[0]:g}, {old[1]:g}]); "
+                "the lower limit must stay below the upper one")
+        return j, new
+
+    def check_target(self, model: mujoco.MjModel) -> None:
+        self._shifted(model)
+
+    def apply_to_model(self, model: mujoco.MjModel) -> None:
+        j, new = self._shifted(model)
+        model.jnt_range[j] = new
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class JointLimitSoftness(ModelEffect):
+    """Set how soft a joint's limits are: ``jnt_solref = (timeconst, dampratio)``.
+
+    A limit is a spring-damper constraint: ``timeconst`` (s) is how fast a violation is pushed
+    back, ``dampratio`` its damping relative to critical (1: critically damped). A larger time
+    constant is a softer stop: under the same torque the joint goes further past its limit.
+    MuJoCo treats a time constant below twice ``opt.timestep`` as twice the time step (its
+    ``refsafe`` default). ``target`` is a limited joint; ``None`` is every limited actuated joint.
+    The limits' impedance (``jnt_solimp``) is left as it is.
+    """
+
+    kind: ClassVar[str] = "joint_limit_solref"
+    target_type: ClassVar = "joint"
+    value_field: ClassVar[str] = "timeconst"
+    fields: ClassVar = ("jnt_solref",)
+    ranges: ClassVar = {"timeconst": Interval(0.0, 1.0, low_open=True, unit="s"),
+                        "dampratio": Interval(0.0, 10.0, low_open=True)}
+    timeconst: float
+    dampratio: float = 1.0
+
+    def check_target(self, model: mujoco.MjModel) -> None:
+        _limited_joints(model, self.kind, self.target, hinge_or_slide=False)  # type: ignore[arg-type]
+
+    def apply_to_model(self, model: mujoco.MjModel) -> None:
+        joints = _limited_joints(model, self.kind, self.target, hinge_or_slide=False)  # type: ignore[arg-type]
+        model.jnt_solref[joints] = [self.timeconst, self.dampratio]
+
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class BodyOffset(ModelEffect):
+    """Move a body, and everything attached below it, by ``offset`` metres along an axis of its
+    parent's frame.
+
+    This edits ``body_pos``, the body's position in its parent's frame: the body's joints, geoms,
+    sites and child bodies move with it, while the parent's own geoms stay where they are. So it
+    changes where a child joint attaches (a limb length as the kinematics see it: a shin that
+    reaches further) while the parent's collision shape is unchanged; to change both, use
+    ``limb_size``. Mass and inertia are unchanged. The target is required: a body other than the
+    world, and not one on a free joint (its position is the joint's state, not a fixed offset).
+    """
+
+    kind: ClassVar[str] = "body_offset"
+    target_type: ClassVar = "body"
+    value_field: ClassVar[str] = "offset"
+    fields: ClassVar = ("body_pos",)
+    ranges: ClassVar = {"axis": OneOf(tuple(_AXES)), "offset": Interval(-1.0, 1.0, unit="m")}
+    axis: str
+    offset: float
+
+    def validate(self) -> None:
+        if self.target is None:
+            self._invalid("target", None, "the name of the body to move")
+
+    def _body(self, model: mujoco.MjModel) -> int:
+        b = int(body_ids(model, str(self.target))[0])
+        if b == 0:
+            raise OffdynError(f"effect {self.kind!r}: {self.target!r} is the world body, which has no parent to move against")
+        first_joint = model.body_jntadr[b]
+        if first_joint >= 0 and int(model.jnt_type[first_joint]) == int(mujoco.mjtJoint.mjJNT_FREE):
+            raise OffdynError(f"effect {self.kind!r}: body {self.target!r} moves on a free joint, so its position "
+                              "is the joint's state, not an offset from its parent")
+        return b
+
+    def check_target(self, model: mujoco.MjModel) -> None:
+        self._body(model)
+
+    def apply_to_model(self, model: mujoco.MjModel) -> None:
+        model.body_pos[self._body(model), _AXES[self.axis]] += self.offset
+
+
+# Geom types whose ``size`` is not a scale of the collision shape: a plane's size only sets how it
+# is drawn, a height field's shape lives in its asset, a mesh's and an SDF's in their vertices.
+_UNSCALABLE_GEOMS = {"mjGEOM_PLANE": "a plane", "mjGEOM_HFIELD": "a height field",
+                     "mjGEOM_MESH": "a mesh", "mjGEOM_SDF": "an SDF"}
+_SKIPPED_GEOMS = ("mjGEOM_PLANE", "mjGEOM_HFIELD")  # unbounded ground: never what "every geom" means
+_MJ_EPS = 1e-14  # the compiler's mjEPS: flat bounding boxes are inflated by it
+
+
+def _rotation(quat: np.ndarray) -> np.ndarray:
+    matrix = np.zeros(9)
+    mujoco.mju_quat2Mat(matrix, np.asarray(quat, dtype=float))
+    return matrix.reshape(3, 3)
+
+
+def _refit_body_bvh(model: mujoco.MjModel, body: int) -> None:
+    """Recompute a body's bounding-volume tree from its geoms' boxes, as the compiler builds it.
+
+    Mid-phase collision between two multi-geom bodies culls with these boxes (in the body's
+    inertial frame), so they must grow with the geoms or contacts of a grown geom are missed.
+    """
+    adr = int(model.body_bvhadr[body])
+    if adr < 0:
+        return
+    to_inertial = _rotation(model.body_iquat[body])
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+
+    def geom_corners(g: int) -> np.ndarray:
+        local = model.geom_aabb[g, :3] + corners * model.geom_aabb[g, 3:]
+        in_body = local @ _rotation(model.geom_quat[g]).T + model.geom_pos[g]
+        return (in_body - model.body_ipos[body]) @ to_inertial
+
+    def refit(node: int) -> np.ndarray:
+        children = [int(c) for c in model.bvh_child[adr + node] if c >= 0]
+        if children:
+            points = np.concatenate([refit(c) for c in children])
+        else:
+            points = geom_corners(int(model.bvh_nodeid[adr + node]))
+        low, high = points.min(axis=0), points.max(axis=0)
+        flat = high - low < _MJ_EPS
+        low[flat] -= _MJ_EPS
+        high[flat] += _MJ_EPS
+        model.bvh_aabb[adr + node] = np.concatenate([(low + high) / 2, (high - low) / 2])
+        return np.stack([low, high])
+
+    refit(0)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class GeomSize(ModelEffect):
+    """Scale the collision shape of geoms uniformly about each geom's centre by ``scale``.
+
+    Every size (radius, half-length, half-extents) scales, so a capsule foot of radius r becomes
+    one of radius ``scale`` x r: a resting robot stands higher by the change of radius, and it
+    touches the ground at another height. The centre stays put (a capsule given by ``fromto``
+    grows at both ends). Mass and inertia are NOT changed: this is collision geometry only (pair
+    it with ``mass`` to change the mass; ``limb_size`` scales a limb with its mass). The bounds the
+    collision phases cull with (``geom_rbound``, ``geom_aabb``, the body's ``bvh_aabb``) scale
+    with it. ``target`` is a geom name, a body name (all that body's geoms except planes and
+    height fields) or ``None`` (every geom except planes and height fields). Planes, height
+    fields, meshes and SDFs are refused by name: their size is not a scale of their shape.
+    """
+
+    kind: ClassVar[str] = "geom_size"
+    target_type: ClassVar = "geom_or_body"
+    value_field: ClassVar[str] = "scale"
+    fields: ClassVar = ("geom_size", "geom_rbound", "geom_aabb", "bvh_aabb")
+    # Below a hundredth a 5 cm foot is half a millimetre: no model gap, only a degenerate shape.
+    ranges: ClassVar = {"scale": Interval(0.01, 10.0, unit="x nominal")}
+    scale: float
+
+    def _geoms(self, model: mujoco.MjModel) -> np.ndarray:
+        ids = geom_ids(model, self.target)  # type: ignore[arg-type]
+        types = [mujoco.mjtGeom(model.geom_type[g]).name for g in ids]
+        named_geom = self.target is not None and mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, str(self.target)) >= 0
+        if named_geom and types[0] in _UNSCALABLE_GEOMS:
+            raise OffdynError(f"effect {self.kind!r}: geom {self.target!r} is {_UNSCALABLE_GEOMS[types[0]]}, "
+                              "whose size is not a scale of its collision shape; expected a primitive geom "
+                              "(sphere, capsule, ellipsoid, cylinder, box)")
+        kept = [g for g, t in zip(ids, types) if t not in _SKIPPED_GEOMS]
+        shaped = [g for g in kept if mujoco.mjtGeom(model.geom_type[g]).name in _UNSCALABLE_GEOMS]
+        if shaped:
+            names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"#{g}" for g in shaped]
+            raise OffdynError(f"effect {self.kind!r}: geom(s) {names} are meshes or SDFs, whose shape lives in "
+                              "their vertices and cannot be scaled on a compiled model; target the primitive "
+                              "geoms by name instead")
+        if not kept:
+            raise OffdynError(f"effect {self.kind!r}: {self.target!r} has no geom whose size can be scaled "
+                              "(planes and height fields are left alone)")
+        return np.array(kept, dtype=int)
+
+    def check_target(self, model: mujoco.MjModel) -> None:
+        self._geoms(model)
+
+    def apply_to_model(self, model: mujoco.MjModel) -> None:
+        geoms = self._geoms(model)
+        model.geom_size[geoms] *= self.scale
+        model.geom_rbound[geoms] *= self.scale
+        model.geom_aabb[geoms] *= self.scale  # centre and half-sizes, both in the geom's own frame
+        for body in sorted({int(model.geom_bodyid[g]) for g in geoms}):
+            _refit_body_bvh(model, body)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -498,14 +730,47 @@ def finalize_model(model: mujoco.MjModel) -> None:
     mujoco.mj_setConst(model, mujoco.MjData(model))
 
 
+def _field_owner(model: mujoco.MjModel, field: str) -> tuple[Any, str]:
+    """``("opt.gravity")`` -> ``(model.opt, "gravity")``; ``"jnt_range"`` -> ``(model, "jnt_range")``."""
+    return (model.opt, field[len("opt."):]) if field.startswith("opt.") else (model, field)
+
+
+def _save_fields(model: mujoco.MjModel, fields: Iterable[str]) -> dict[str, Any]:
+    saved: dict[str, Any] = {}
+    for field in fields:
+        value = getattr(*_field_owner(model, field))
+        saved[field] = value.copy() if isinstance(value, np.ndarray) else value
+    return saved
+
+
+def _restore_fields(model: mujoco.MjModel, saved: dict[str, Any]) -> None:
+    for field, value in saved.items():
+        owner, name = _field_owner(model, field)
+        current = getattr(owner, name)
+        if isinstance(current, np.ndarray):
+            current[...] = value
+        else:
+            setattr(owner, name, value)
+
+
 def apply_model_effects(model: mujoco.MjModel, effects: Sequence[ModelEffect]) -> None:
-    """Apply field-level model effects to a compiled model in place, then finalize it."""
+    """Apply field-level model effects to a compiled model in place, then finalize it.
+
+    Targets are checked before anything is written; an effect that fails only once the effects
+    before it have acted (a limit moved past a range that an earlier effect narrowed) restores
+    every field the effects declare, so a failed call leaves the model as it was.
+    """
     for effect in effects:
         if effect.needs_spec:
             raise OffdynError(f"effect {effect.kind!r} changes geometry; build the model with compile_model()")
         effect.check_target(model)
-    for effect in effects:
-        effect.apply_to_model(model)
+    saved = _save_fields(model, dict.fromkeys(f for effect in effects for f in effect.fields))
+    try:
+        for effect in effects:
+            effect.apply_to_model(model)
+    except BaseException:
+        _restore_fields(model, saved)
+        raise
     if effects:
         finalize_model(model)
 
