@@ -1,15 +1,18 @@
 """The candidate library: the effect vocabulary instantiated everywhere it applies on a model.
 
-Every candidate is one effect with one free value (the effect's ``value_field``), the value that
-means "no change" (``nominal``), bounds, a probe step for screening, and how its value is searched:
+Every candidate is one effect with one free value (its ``field``, by default the effect's
+``value_field``; the effect's other parameters are held at ``fixed``), the value that means "no
+change" (``nominal``), bounds, a probe step for screening, and how its value is searched:
 ``smooth`` (least squares), ``threshold`` (grids: a dead zone or a saturation changes the
-prediction in jumps) or ``integer`` (enumeration: delays in control steps).
+prediction in jumps), ``integer`` (enumeration: delays in control steps) or ``categorical``
+(enumeration of named alternatives: the integrator, the friction cone).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+from collections.abc import Iterable
+from typing import Any, Literal
 
 import mujoco
 import numpy as np
@@ -19,13 +22,19 @@ from offdyn_bench.effects import EFFECT_KINDS, Effect
 from offdyn_bench.effects.base import Interval
 from offdyn_bench.effects.model import actuated_joint_ids, actuator_name, dof_ids
 
-Search = Literal["smooth", "threshold", "integer"]
+Search = Literal["smooth", "threshold", "integer", "categorical"]
 
 # Between candidates that explain the data equally well, the earlier kind is reported: a weaker
 # motor (gear) and a command gain below one are the same physics while commands stay in range.
 KIND_PRIORITY = ("gravity", "friction", "mass", "gear", "damping", "frictionloss", "armature",
+                 "joint_range", "joint_limit", "joint_limit_solref", "contact_solref", "contact_solimp",
+                 "body_offset", "geom_size", "limb_size", "integrator", "friction_cone",
                  "action_delay", "action_deadzone", "action_saturation", "action_bias", "action_gain",
                  "obs_bias", "obs_delay")
+
+# Fixed parameters that make two candidates of one kind and target different effects (both may be
+# added); the others (a dampratio, solimp's width) only complete the effect.
+DISTINGUISHING = ("side", "axis")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,28 +49,51 @@ class Candidate:
     probe: float
     search: Search
     trials: tuple[float, ...] = ()  # values the screen also tries directly (a smooth one's are extra)
+    fixed: tuple[tuple[str, Any], ...] = ()  # the effect's other parameters
+    choices: tuple[str, ...] = ()  # a categorical candidate's values; its value is an index
+
+    @property
+    def field(self) -> str:
+        return EFFECT_KINDS[self.kind].value_field
+
+    @property
+    def qualifier(self) -> str:
+        parts = [f"{k}={v}" for k, v in self.fixed if k in DISTINGUISHING]
+        return f"({', '.join(parts)})" if parts else ""
 
     @property
     def label(self) -> str:
         where = "all" if self.target is None else (
             f"obs[{self.target}]" if isinstance(self.target, int) else str(self.target))
-        return f"{self.kind} on {where}"
+        return f"{self.kind}{self.qualifier} on {where}"
 
     @property
     def priority(self) -> int:
         return KIND_PRIORITY.index(self.kind) if self.kind in KIND_PRIORITY else len(KIND_PRIORITY)
 
+    def parameter_value(self, value: float) -> float | int | str:
+        """The effect parameter a searched value stands for (an index names a choice)."""
+        if self.search == "categorical":
+            return self.choices[int(round(value))]
+        return int(round(value)) if self.search == "integer" else float(value)
+
     def effect(self, value: float) -> Effect:
         cls = EFFECT_KINDS[self.kind]
-        number: float | int = int(round(value)) if self.search == "integer" else float(value)
-        return cls(target=self.target, **{cls.value_field: number})  # type: ignore[call-arg]
+        return cls(target=self.target, **dict(self.fixed), **{self.field: self.parameter_value(value)})  # type: ignore[call-arg]
+
+    def matches(self, effect: Effect) -> bool:
+        """Whether ``effect`` is this candidate's effect at some value."""
+        if effect.kind != self.kind or effect.target != self.target:
+            return False
+        return all(getattr(effect, k, None) == v for k, v in self.fixed if k in DISTINGUISHING)
 
     def clip(self, value: float) -> float:
         return float(np.clip(value, self.low, self.high))
 
     def on_bound(self, value: float) -> bool:
         width = self.high - self.low
-        return self.search != "integer" and (value - self.low < 1e-3 * width or self.high - value < 1e-3 * width)
+        return self.search in ("smooth", "threshold") and (value - self.low < 1e-3 * width
+                                                          or self.high - value < 1e-3 * width)
 
 
 def _joint_name(model: mujoco.MjModel, joint: int) -> str:
@@ -79,8 +111,118 @@ def _max_torque(model: mujoco.MjModel, joints: np.ndarray) -> float:
     return torque or 1.0
 
 
-def candidate_library(source: SourceSimulator, *, with_observation_delay: bool = True) -> list[Candidate]:
-    """Every candidate the vocabulary allows on ``source``'s model and observation."""
+def _uniform(values: np.ndarray) -> bool:
+    return bool(len(values)) and bool(np.allclose(values, values[:1]))
+
+
+def _contact_geoms(model: mujoco.MjModel) -> np.ndarray:
+    return np.flatnonzero((model.geom_contype != 0) | (model.geom_conaffinity != 0))
+
+
+def _named_bodies(model: mujoco.MjModel, ids: Any) -> list[tuple[int, str]]:
+    out = []
+    for body in ids:
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(body))
+        if name:
+            out.append((int(body), name))
+    return out
+
+
+def _joint_candidates(model: mujoco.MjModel, joints: np.ndarray) -> list[Candidate]:
+    """Per limited hinge or slide joint: its range widened or shrunk, each limit moved on its own,
+    and the softness of its limit."""
+    out: list[Candidate] = []
+    sliding_or_hinged = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+    limited = [j for j in joints.tolist() if model.jnt_limited[j] and int(model.jnt_type[j]) in sliding_or_hinged]
+    for j in limited:
+        name = _joint_name(model, j)
+        if not name:
+            continue
+        low, high = (float(x) for x in model.jnt_range[j])
+        width = high - low
+        if width <= 0:
+            continue
+        out.append(Candidate("joint_range", name, 1.0, 0.2, 3.0, 0.05, "smooth", trials=(0.6, 1.5, 2.0)))
+        # A limit only acts on rows that reach it: the screen also tries whole moves, not just a probe.
+        out.append(Candidate("joint_limit", name, 0.0, -width, 0.9 * width, 0.02 * width, "smooth",
+                             trials=(-0.3 * width, -0.1 * width, 0.1 * width, 0.3 * width), fixed=(("side", "lower"),)))
+        out.append(Candidate("joint_limit", name, 0.0, -0.9 * width, width, 0.02 * width, "smooth",
+                             trials=(-0.3 * width, -0.1 * width, 0.1 * width, 0.3 * width), fixed=(("side", "upper"),)))
+        timeconst, dampratio = (float(x) for x in model.jnt_solref[j])
+        if timeconst > 0:  # a negative solref sets stiffness directly: another parameterization
+            out.append(Candidate("joint_limit_solref", name, timeconst, 0.002, 0.3, 0.1 * timeconst, "smooth",
+                                 trials=(3 * timeconst,), fixed=(("dampratio", dampratio),)))
+    return out
+
+
+def _contact_candidates(model: mujoco.MjModel) -> list[Candidate]:
+    """Friction per body, and the contact softness (solref) and impedance (solimp) of every geom."""
+    out: list[Candidate] = []
+    geoms = _contact_geoms(model)
+    for body, name in _named_bodies(model, sorted(set(model.geom_bodyid[geoms].tolist()))):
+        out.append(Candidate("friction", name, 1.0, 0.1, 5.0, 0.1, "smooth", trials=(2.0,)))
+    if len(geoms) and _uniform(model.geom_solref[geoms]) and model.geom_solref[geoms[0], 0] > 0:
+        timeconst, dampratio = (float(x) for x in model.geom_solref[geoms[0]])
+        out.append(Candidate("contact_solref", None, timeconst, max(0.002, 2 * model.opt.timestep), 0.3,
+                             0.1 * timeconst, "smooth", trials=(3 * timeconst,), fixed=(("dampratio", dampratio),)))
+    if len(geoms) and _uniform(model.geom_solimp[geoms]):
+        dmin, dmax, width, midpoint, power = (float(x) for x in model.geom_solimp[geoms[0]])
+        out.append(Candidate("contact_solimp", None, dmax, max(dmin, 0.05), 0.999, 0.02, "smooth",
+                             trials=(max(dmin, 0.5 * dmax), min(0.99, 0.5 * (1 + dmax))),
+                             fixed=(("dmin", dmin), ("width", width), ("midpoint", midpoint), ("power", power))))
+    return out
+
+
+def _geometry_candidates(source: SourceSimulator) -> list[Candidate]:
+    """Body positions (where a child attaches: limb lengths as the kinematics see them), collision
+    geom sizes, and whole limbs rescaled (geometry and mass, compiled per candidate)."""
+    model = source.base_model
+    out: list[Candidate] = []
+    children = [b for b in range(1, model.nbody) if model.body_parentid[b] != 0]
+    for body, name in _named_bodies(model, children):
+        reach = max(0.05, 0.5 * float(np.linalg.norm(model.body_pos[body])))
+        for axis in "xyz":
+            out.append(Candidate("body_offset", name, 0.0, -reach, reach, 0.005, "smooth",
+                                 trials=(-0.2 * reach, 0.2 * reach), fixed=(("axis", axis),)))
+    planes = {int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_HFIELD)}
+    sized = [g for g in _contact_geoms(model) if int(model.geom_type[g]) not in planes]
+    for body, name in _named_bodies(model, sorted(set(model.geom_bodyid[sized].tolist()))):
+        if body == 0:
+            continue
+        out.append(Candidate("geom_size", name, 1.0, 0.3, 3.0, 0.05, "smooth", trials=(1.5,)))
+        if source.compiles_from_spec:
+            out.append(Candidate("limb_size", name, 1.0, 0.5, 2.0, 0.05, "smooth"))
+    return out
+
+
+def _solver_candidates(model: mujoco.MjModel) -> list[Candidate]:
+    """Numerical choices of the engine: the integrator and the friction cone."""
+    out: list[Candidate] = []
+    for kind, field, enum, names in (("integrator", "integrator", mujoco.mjtIntegrator, INTEGRATOR_NAMES),
+                                     ("friction_cone", "cone", mujoco.mjtCone, CONE_NAMES)):
+        current = int(getattr(model.opt, field))
+        choices = tuple(label for label, member in names.items() if hasattr(enum, member))
+        nominal = next((i for i, label in enumerate(choices) if int(getattr(enum, names[label])) == current), None)
+        if nominal is None or len(choices) < 2:
+            continue
+        out.append(Candidate(kind, None, float(nominal), 0.0, float(len(choices) - 1), 1.0, "categorical",
+                             trials=tuple(float(i) for i in range(len(choices)) if i != nominal), choices=choices))
+    return out
+
+
+# The effect's names for MuJoCo's integrators and cones (offdyn_bench.effects.model).
+INTEGRATOR_NAMES = {"Euler": "mjINT_EULER", "RK4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT",
+                    "implicitfast": "mjINT_IMPLICITFAST"}
+CONE_NAMES = {"pyramidal": "mjCONE_PYRAMIDAL", "elliptic": "mjCONE_ELLIPTIC"}
+
+
+def candidate_library(source: SourceSimulator, *, obs_bias_dims: Iterable[int] | None = None,
+                      obs_delay_dims: Iterable[int] | None = None) -> list[Candidate]:
+    """Every candidate the vocabulary allows on ``source``'s model and observation.
+
+    ``obs_bias_dims`` / ``obs_delay_dims``: the observation dimensions where the data allow that
+    observation effect (``None``: every dimension read off the state).
+    """
     model = source.base_model
     out: list[Candidate] = [
         Candidate("gravity", None, 1.0, 0.2, 3.0, 0.05, "smooth"),
@@ -114,6 +256,10 @@ def candidate_library(source: SourceSimulator, *, with_observation_delay: bool =
                 # Dry friction sticks or slips: a small probe says little about a large value.
                 trials = (nominal + 5 * probe, nominal + 15 * probe)
             out.append(Candidate(kind, name, nominal, 0.0, high, probe, "smooth", trials))
+    out += _joint_candidates(model, joints)
+    out += _contact_candidates(model)
+    out += _geometry_candidates(source)
+    out += _solver_candidates(model)
 
     for actuator in [None, *range(model.nu)]:
         name = None if actuator is None else actuator_name(model, actuator)
@@ -131,11 +277,17 @@ def candidate_library(source: SourceSimulator, *, with_observation_delay: bool =
             Candidate("action_delay", name, 0, 1, 3, 1, "integer", trials=(1.0, 2.0)),
         ]
 
-    for i in source.observation_map.mapped.tolist():
-        out.append(Candidate("obs_bias", int(i), 0.0, -1e3, 1e3, 0.01, "smooth"))
-        if with_observation_delay:
+    mapped = source.observation_map.mapped.tolist()
+    bias = set(mapped if obs_bias_dims is None else obs_bias_dims)
+    delay = set(mapped if obs_delay_dims is None else obs_delay_dims)
+    for i in mapped:
+        if i in bias:
+            out.append(Candidate("obs_bias", int(i), 0.0, -1e3, 1e3, 0.01, "smooth"))
+        if i in delay:
             out.append(Candidate("obs_delay", int(i), 0, 1, 2, 1, "integer", trials=(1.0,)))
-    return [c for c in map(_within_effect_range, out) if c is not None]
+    # Kinds the installed vocabulary lacks are skipped, never guessed at.
+    known = [c for c in out if c.kind in EFFECT_KINDS]
+    return [c for c in map(_within_effect_range, known) if c is not None]
 
 
 def _within_effect_range(candidate: Candidate) -> Candidate | None:

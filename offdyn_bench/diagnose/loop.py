@@ -16,12 +16,14 @@ from typing import Any
 
 import numpy as np
 
-from offdyn_bench.diagnose.candidates import Candidate, candidate_library
+from offdyn_bench.diagnose.candidates import DISTINGUISHING, Candidate, candidate_library
 from offdyn_bench.diagnose.data import Transitions, load_transitions
 from offdyn_bench.diagnose.residual import NUMERICAL_FLOOR, Hypothesis, ResidualEvaluator, block_improvement_z
+from offdyn_bench.diagnose.identifiability import Identifiability, identifiability
 from offdyn_bench.diagnose.search import Fit, fit, screen
 from offdyn_bench.diagnose.source import SourceSimulator
 from offdyn_bench.diagnose.stochastic import action_channel_share, estimate_action_noise
+from offdyn_bench.diagnose.systematic import Predictability, residual_predictability
 from offdyn_bench.engines.gap import engine_gap_note
 from offdyn_bench.errors import InvalidParameterError
 from offdyn_bench.versions import versions
@@ -140,6 +142,10 @@ class Diagnosis:
     action_channel_share: float
     dimension_names: tuple[str, ...]
     timings: dict[str, float]
+    residual_predictability: Predictability | None = None
+    identifiability: Identifiability | None = None
+    observation_check: dict[str, Any] = dataclasses.field(default_factory=dict)
+    noise_floor_source: str = ""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -152,7 +158,12 @@ class Diagnosis:
             "error_before": self.error_before.to_json(),
             "error_after": self.error_after.to_json(),
             "noise_floor": self.noise_floor,
+            "noise_floor_source": self.noise_floor_source,
+            "observation_channel": self.observation_check,
             "unexplained_residual": self.unexplained_residual,
+            "residual_predictability": (None if self.residual_predictability is None
+                                        else self.residual_predictability.to_json()),
+            "identifiability": None if self.identifiability is None else self.identifiability.to_json(),
             "stop_reason": self.stop_reason,
             "steps": [s.to_json() for s in self.steps],
             "calibrated_env": self.calibrated_env,
@@ -179,8 +190,18 @@ def _errors(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> Errors:
 
 
 def _effect_json(candidate: Candidate, value: float) -> dict[str, Any]:
-    return {"kind": candidate.kind, "target": candidate.target,
-            "value": int(round(value)) if candidate.search == "integer" else float(value)}
+    """The effect as a report lists it: kind, target and fitted value first, then what tells two
+    candidates of one kind apart (a joint's lower or upper limit, an axis)."""
+    out: dict[str, Any] = {"kind": candidate.kind, "target": candidate.target,
+                           "value": candidate.parameter_value(value)}
+    out.update({k: v for k, v in candidate.fixed if k in DISTINGUISHING})
+    return out
+
+
+def _interval_json(candidate: Candidate, low: float, high: float) -> list[Any]:
+    if candidate.search == "categorical":  # a category is located exactly, or not at all
+        return [candidate.parameter_value(low), candidate.parameter_value(high)]
+    return [float(low), float(high)]
 
 
 def _at_floor(heldout_nrmse: float, floor: float, settings: DiagnosisSettings, margin: float) -> bool:
@@ -199,14 +220,18 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         data = load_transitions(data, nq=source.base_model.nq, nv=source.base_model.nv)
     evaluator = ResidualEvaluator(source, data, horizon=settings.horizon, heldout_fraction=settings.heldout_fraction,
                                   screen_rows=settings.screen_rows, fit_rows=settings.fit_rows, seed=settings.seed)
-    library = candidate_library(source, with_observation_delay=not evaluator.rebuilt)
+    check = evaluator.observation_check
+    # Observation effects only where the stored states show the sensors disagree with the state.
+    library = candidate_library(source, obs_bias_dims=check.bias_allowed, obs_delay_dims=check.delay_allowed)
     clock["setup"] = time.perf_counter() - started
 
     tick = time.perf_counter()
     hypothesis: Hypothesis = ()
     chosen: list[tuple[Candidate, float, tuple[float, float], bool]] = []
+    history: dict[str, list[Any]] = {}  # each effect's value when added and after every refit
     first = _errors(evaluator, hypothesis)
-    floor, floor_dims = evaluator.noise_floor(hypothesis)
+    # Measured from the data once; no hypothesis judged against it may move it.
+    floor, floor_dims = evaluator.noise_floor()
     # A residual that a per-step command correction explains points at the action channel.
     share_before = action_channel_share(evaluator, hypothesis).share
     clock["validation"] += time.perf_counter() - tick
@@ -252,6 +277,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
 
         hypothesis = hypothesis + (chosen_fit.candidate.effect(chosen_fit.value),)
         chosen.append((chosen_fit.candidate, chosen_fit.value, chosen_fit.interval, chosen_fit.on_bound))
+        history.setdefault(chosen_fit.candidate.label, []).append(_effect_json(chosen_fit.candidate, chosen_fit.value)["value"])
         refitted: list[dict[str, Any]] = []
         if len(chosen) > 1:
             # Effects found earlier were fitted while this one was missing: refit every effect with
@@ -262,6 +288,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                 others = hypothesis[:j] + hypothesis[j + 1:]
                 refit = fit(evaluator, others, candidate, value)
                 chosen[j] = (candidate, refit.value, refit.interval, refit.on_bound)
+                history[candidate.label].append(_effect_json(candidate, refit.value)["value"])
                 hypothesis = others[:j] + (candidate.effect(refit.value),) + others[j:]
                 refitted.append(_effect_json(candidate, refit.value))
             chosen_fit = Fit(chosen_fit.candidate, chosen[-1][1], chosen[-1][2], chosen[-1][3], chosen_fit.sse)
@@ -269,9 +296,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
 
         tick = time.perf_counter()
         after = _errors(evaluator, hypothesis)
-        floor, floor_dims = evaluator.noise_floor(hypothesis)
         clock["validation"] += time.perf_counter() - tick
-        steps.append(Step(effect=_effect_json(chosen_fit.candidate, chosen_fit.value), interval=chosen_fit.interval,
+        steps.append(Step(effect=_effect_json(chosen_fit.candidate, chosen_fit.value), interval=tuple(_interval_json(chosen_fit.candidate, *chosen_fit.interval)),
                           on_bound=chosen_fit.on_bound, before=current, after=after,
                           heldout_gain_z=float(min(z_scores[pick], 1e6)), equivalent_alternatives=alternatives,
                           screened=tuple((s.candidate.label, float(s.reduction)) for s in scores[:8]),
@@ -281,8 +307,25 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         if _at_floor(current.heldout_trimmed_nrmse, floor, settings, settings.search_margin):
             stop_reason = "held-out error reached the noise floor"
 
+    # Before any noise is added: what the data cannot resolve among the deterministic effects.
+    tick = time.perf_counter()
+    gauge_notes: list[str] = []
+    identified = _identify(evaluator, hypothesis, chosen, settings.seed)
+    if identified is not None and identified.unresolved:
+        hypothesis, chosen, gauge_notes = _fix_gauge(evaluator, hypothesis, chosen, identified, settings)
+        if gauge_notes:
+            current = _errors(evaluator, hypothesis)
+            identified = _identify(evaluator, hypothesis, chosen, settings.seed)
+    clock["validation"] += time.perf_counter() - tick
     unexplained = not _at_floor(current.heldout_trimmed_nrmse, floor, settings, settings.explained_margin)
-    if unexplained and len(chosen) < settings.max_effects:
+    tick = time.perf_counter()
+    # A residual the state and command predict is a model error: no noise fit may absorb it.
+    predictability = residual_predictability(evaluator, hypothesis, seed=settings.seed) if unexplained else None
+    clock["validation"] += time.perf_counter() - tick
+    if predictability is not None and predictability.systematic:
+        stop_reason += (f"; the rest is systematic (quadratic features of state and command predict "
+                        f"{predictability.heldout_r2:.0%} of it on held-out episodes), not noise")
+    elif unexplained and len(chosen) < settings.max_effects:
         # What no deterministic effect explains may still be the spread of a noisy command.
         tick = time.perf_counter()
         noise = estimate_action_noise(evaluator, hypothesis)
@@ -296,10 +339,25 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
             unexplained = False
             stop_reason += f"; the rest is action noise (a command correction explains {noise.share:.0%} of it)"
 
-    effects_added = tuple({**_effect_json(c, v), "interval": [float(lo), float(hi)], "on_bound": bound}
-                          for c, v, (lo, hi), bound in chosen)
+    effects_added = []
+    for c, v, (lo, hi), bound in chosen:
+        entry = {**_effect_json(c, v), "interval": _interval_json(c, lo, hi), "interval_method": "profile grid"
+                 if c.search == "threshold" else ("exact enumeration" if c.search in ("integer", "categorical")
+                                                  else "Gauss-Newton (rows independent)"), "on_bound": bound}
+        if c.kind == "action_noise":
+            entry["interval_method"] = "spread of per-step command corrections"
+        elif identified is not None and c.label in identified.intervals:
+            entry["interval"] = list(identified.intervals[c.label])
+            entry["interval_method"] = f"episode bootstrap ({identified.resamples} resamples, linearized)"
+        entry["values_during_search"] = history.get(c.label, [])
+        entry["effect"] = c.effect(v).to_dict() if c.kind != "action_noise" else {"kind": "action_noise", "std": v}
+        effects_added.append(entry)
     clock["total"] = time.perf_counter() - started
     notes = list(evaluator.notes)
+    notes.extend(gauge_notes)
+    if predictability is not None and predictability.systematic:
+        notes.append(f"the remaining residual is predictable from state and command (held-out R^2 "
+                     f"{predictability.heldout_r2:.2f}): a model error outside what was added, not noise")
     if data.recorded_env_id and data.recorded_env_id != env_id:
         notes.insert(0, f"the dataset names {data.recorded_env_id!r} as its env; diagnosed against {env_id!r}")
     engine_note = engine_gap_note(data.recorded_env_id)  # data from DART: a residual no effect explains
@@ -311,11 +369,56 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     return Diagnosis(
         env_id=env_id, dataset=data.origin or "<in-memory transitions>", transitions=data.size,
         state_source="rebuilt from observations" if evaluator.rebuilt else "stored qpos/qvel",
-        notes=tuple(notes), effects_added=effects_added, error_before=first, error_after=current,
+        notes=tuple(notes), effects_added=tuple(effects_added), error_before=first, error_after=current,
         noise_floor=floor, noise_floor_per_dimension=tuple(float(x) for x in floor_dims),
         unexplained_residual=unexplained,
         stop_reason=stop_reason, steps=tuple(steps),
         calibrated_env=source.calibrated_env([c.effect(v) for c, v, _, _ in chosen]),
         action_channel_share=share_before,
         dimension_names=tuple(source.observation_map.names[i] for i in evaluator.dims),
-        timings={k: round(v, 3) for k, v in clock.items()})
+        timings={k: round(v, 3) for k, v in clock.items()},
+        residual_predictability=predictability, identifiability=identified,
+        observation_check={"bias_candidates": [source.observation_map.names[d] for d in check.bias_allowed],
+                           "delay_candidates": [source.observation_map.names[d] for d in check.delay_allowed],
+                           "largest_discrepancy": check.max_discrepancy},
+        noise_floor_source=check.floor_source)
+
+
+Chosen = tuple[Candidate, float, tuple[float, float], bool]
+
+
+def _identify(evaluator: ResidualEvaluator, hypothesis: Hypothesis, chosen: list[Chosen],
+              seed: int) -> Identifiability | None:
+    smooth = [(i, c, v) for i, (c, v, _, _) in enumerate(chosen) if c.search == "smooth"]
+    return identifiability(evaluator, hypothesis, smooth, seed=seed)
+
+
+def _fix_gauge(evaluator: ResidualEvaluator, hypothesis: Hypothesis, chosen: list[Chosen],
+               identified: Identifiability, settings: DiagnosisSettings) -> tuple[Hypothesis, list[Chosen], list[str]]:
+    """Where the data cannot separate some effects (a near-symmetry, e.g. every mass and every
+    force scaled together), hold one of them at the source's value (a mass first: the source's
+    total mass is the natural gauge), refit the rest, and keep the gauge if held-out error stays
+    within the complexity penalty."""
+    notes: list[str] = []
+    for direction in identified.unresolved:
+        labels = [label for label in direction if any(c.label == label for c, *_ in chosen)]
+        if len(labels) < 2:
+            continue
+        held = max(labels, key=lambda label: (label.startswith("mass"), abs(direction[label])))
+        index = next(i for i, (c, *_) in enumerate(chosen) if c.label == held)
+        trial_chosen = chosen[:index] + chosen[index + 1:]
+        trial = hypothesis[:index] + hypothesis[index + 1:]
+        for j, (candidate, value, _, _) in enumerate(trial_chosen):
+            others = trial[:j] + trial[j + 1:]
+            refit = fit(evaluator, others, candidate, value)
+            trial_chosen[j] = (candidate, refit.value, refit.interval, refit.on_bound)
+            trial = others[:j] + (candidate.effect(refit.value),) + others[j:]
+        before, = evaluator.residuals([hypothesis], "heldout")
+        after, = evaluator.residuals([trial], "heldout")
+        if float(np.sum(after**2)) <= (1.0 + settings.min_relative_gain) * float(np.sum(before**2)):
+            others = ", ".join(label for label in labels if label != held)
+            notes.append(f"gauge: {held} is held at the source's value; the data cannot separate it from {others} "
+                         "(they move together along a direction the data do not resolve), so they were refitted "
+                         "with it fixed")
+            hypothesis, chosen = trial, trial_chosen
+    return hypothesis, chosen, notes

@@ -21,7 +21,11 @@ def _nrmse(value: float | None) -> str:
 
 def _value(effect: dict[str, Any]) -> str:
     value = effect["value"]
-    return str(value) if isinstance(value, int) else f"{value:.4g}"
+    return str(value) if isinstance(value, (int, str)) else f"{value:.4g}"
+
+
+def _bound(value: Any) -> str:
+    return str(value) if isinstance(value, str) else f"{value:.4g}"
 
 
 def steps_table(diagnosis: Diagnosis) -> str:
@@ -34,10 +38,11 @@ def steps_table(diagnosis: Diagnosis) -> str:
     for i, step in enumerate(diagnosis.steps, 1):
         e = step.effect
         target = "all" if e["target"] is None else e["target"]
+        qualifier = "".join(f" ({k} {e[k]})" for k in ("side", "axis") if k in e)
         low, high = step.interval
         bound = " on its bound" if step.on_bound else (" (stochastic: explains the spread)" if step.stochastic else "")
         lines.append(
-            f"| {i} | {e['kind']} on {target} | {_value(e)} ({low:.4g}..{high:.4g}){bound} "
+            f"| {i} | {e['kind']}{qualifier} on {target} | {_value(e)} ({_bound(low)}..{_bound(high)}){bound} "
             f"| {step.before.one_step_nrmse:.4g} -> {step.after.one_step_nrmse:.4g} "
             f"| {step.before.heldout_one_step_nrmse:.4g} -> {step.after.heldout_one_step_nrmse:.4g} "
             f"| {_nrmse(step.before.horizon_nrmse)} -> {_nrmse(step.after.horizon_nrmse)} "

@@ -132,6 +132,10 @@ class ResidualEvaluator:
             self._check_unobserved_coordinates()
         self._reference: dict[tuple, list[tuple[np.ndarray, np.ndarray]]] = {}
         self._actions_cache: dict[tuple[Effect, ...], np.ndarray] = {}
+        self.observation_check = self._check_observation_channel()
+        note = self.observation_check.note(source.observation_map.names)
+        if note is not None:
+            self.notes.append(note)
 
     def _check_unobserved_coordinates(self) -> None:
         """The rebuilt state sets positions the observation lacks (Hopper's x) to their reference
@@ -318,39 +322,106 @@ class ResidualEvaluator:
             out["horizon_heldout"] = ErrorSummary.of(h_heldout)
         return out
 
-    # --- noise floor ----------------------------------------------------------------------
-    def noise_floor(self, hypothesis: Hypothesis) -> tuple[float, np.ndarray]:
-        """Normalized one-step error a perfect model would still make, and its per-dimension part.
+    # --- the observation channel and the noise floor, from the data alone ----------------------
+    def _discrepancy(self, rows: np.ndarray, shift: int = 0) -> np.ndarray:
+        """Recorded observation minus the one read off the stored state ``shift`` control steps
+        earlier (clamped to the episode start), normalized like the residual."""
+        back = np.maximum(rows - shift, self.episode_start_row[rows])
+        read = self.source.observation_map.observe(self.source.qpos_qvel(self.states[back]))
+        return (self.data.observations[rows][:, self.dims] - read) / self.spread
 
-        With stored states, the recorded observation minus the observation read off the stored
-        state (through the hypothesis's observation channel) is the measurement noise itself, and
-        with an exact model the one-step residual is exactly that noise. Without stored states the
-        noise cannot be separated from model error: the floor is then the numerical one.
+    def _check_observation_channel(self) -> ObservationCheck:
+        """Which observation effects the data allow on each dimension, and the noise floor.
+
+        With stored states the recorded observation can be compared with the one the state
+        implies, with no model involved. A dimension whose two readings agree to numerical
+        precision admits no observation effect at all; a bias is a candidate only where the
+        discrepancy has a mean (tested across episodes), a delay only where reading an earlier
+        state removes most of it. The floor is the spread of the discrepancy that is left: a
+        measurement of the sensors, fixed before any hypothesis is judged, so no hypothesis can
+        move it. Without stored states, observation and state cannot be told apart: every
+        observation bias stays a candidate, delays are not (the rebuilt state carries the delay),
+        and the floor is the numerical one.
         """
+        mapped = [int(d) for d in self.dims]
         if self.rebuilt:
-            return NUMERICAL_FLOOR, np.full(self.dims.size, NUMERICAL_FLOOR)
-        rows = self.subsets["train"]
-        predicted = self._observe_state_rows(rows, hypothesis)
-        for effect, columns in self._observation_effects(hypothesis):
-            if effect.kind == "obs_bias":
-                predicted[:, columns] += effect.value  # type: ignore[attr-defined]
-            elif effect.kind == "obs_delay":
-                back_rows = np.maximum(rows - int(effect.steps), self.episode_start_row[rows])  # type: ignore[attr-defined]
-                predicted[:, columns] = self._observe_state_rows(back_rows, hypothesis)[:, columns]
-        error = (self.data.observations[rows][:, self.dims] - predicted) / self.spread
-        per_dim = np.std(error, axis=0)
-        # A discrepancy that a time shift removes is an undiagnosed observation delay, not noise:
-        # the floor of each dimension is its smallest discrepancy over shifts of up to two steps.
-        delayed_dims = {c for e in hypothesis if e.kind == "obs_delay"
-                        for c, d in enumerate(self.dims) if e.dimension_mask(self.source.observation_size)[d]}
-        for shift in (1, 2):
-            back_rows = np.maximum(rows - shift, self.episode_start_row[rows])
-            shifted = self._observe_state_rows(back_rows, hypothesis)
-            shifted_error = np.std((self.data.observations[rows][:, self.dims] - shifted) / self.spread, axis=0)
-            free = np.array([c not in delayed_dims for c in range(self.dims.size)])
-            per_dim = np.where(free, np.minimum(per_dim, shifted_error), per_dim)
-        floor = float(np.sqrt(np.mean(per_dim**2)))
-        return max(floor, NUMERICAL_FLOOR), per_dim
+            return ObservationCheck(max_discrepancy=None, bias_allowed=tuple(mapped), delay_allowed=(),
+                                    floor_per_dimension=np.full(self.dims.size, NUMERICAL_FLOOR), floor_source=(
+                                        "numerical: without stored states sensor noise cannot be told apart from "
+                                        "model error"))
+        rows = np.flatnonzero(self.usable)
+        now = self._discrepancy(rows)
+        rms_now = np.sqrt(np.mean(now**2, axis=0))
+        shifted = [np.sqrt(np.mean(self._discrepancy(rows, s) ** 2, axis=0)) for s in DELAY_SHIFTS]
+        centred = np.std(now, axis=0)
+        floor = centred.copy()
+        bias, delay = [], []
+        episodes = self.episode[rows]
+        for c, d in enumerate(mapped):
+            if rms_now[c] <= AGREEMENT_TOLERANCE:
+                continue  # the sensor reads the state exactly: nothing to explain
+            best_shift = min(range(len(DELAY_SHIFTS)), key=lambda i: shifted[i][c])
+            if shifted[best_shift][c] < 0.5 * rms_now[c]:
+                delay.append(d)
+                floor[c] = min(floor[c], np.std(self._discrepancy(rows, DELAY_SHIFTS[best_shift])[:, c]))
+            if _mean_is_significant(now[:, c], episodes):
+                bias.append(d)
+        floor = np.maximum(floor, NUMERICAL_FLOOR)
+        return ObservationCheck(max_discrepancy=float(np.max(np.abs(now))) if now.size else 0.0,
+                                bias_allowed=tuple(bias), delay_allowed=tuple(delay), floor_per_dimension=floor,
+                                floor_source="measured: the recorded observations against the stored states")
+
+    def noise_floor(self) -> tuple[float, np.ndarray]:
+        """Normalized one-step error a perfect model would still make, and its per-dimension part:
+        measured once from the data (see :meth:`_check_observation_channel`), the same for every
+        hypothesis."""
+        per_dim = self.observation_check.floor_per_dimension
+        return max(float(np.sqrt(np.mean(per_dim**2))), NUMERICAL_FLOOR), per_dim
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationCheck:
+    """What the stored states say about the observation channel."""
+
+    max_discrepancy: float | None
+    """Largest normalized difference between a recorded observation and the one its stored state
+    implies; ``None`` without stored states."""
+    bias_allowed: tuple[int, ...]
+    """Observation indices where an ``obs_bias`` is a candidate."""
+    delay_allowed: tuple[int, ...]
+    """Observation indices where an ``obs_delay`` is a candidate."""
+    floor_per_dimension: np.ndarray
+    floor_source: str
+
+    def note(self, names: Sequence[str]) -> str | None:
+        if self.max_discrepancy is None:
+            return None
+        if not self.bias_allowed and not self.delay_allowed:
+            if self.max_discrepancy <= AGREEMENT_TOLERANCE:
+                return (f"the recorded observations equal those read off the stored states (largest difference "
+                        f"{self.max_discrepancy:.2g}, normalized): no observation effect is a candidate")
+            return ("the recorded observations differ from the stored states only by zero-mean noise that no "
+                    "time shift removes: no observation effect is a candidate; the noise sets the floor")
+        allowed = [f"bias on {names[d]}" for d in self.bias_allowed] + [f"delay on {names[d]}" for d in self.delay_allowed]
+        return "the stored states show an observation-channel discrepancy; candidates: " + ", ".join(allowed)
+
+
+# A time shift of the recorded observation of up to this many control steps is looked for.
+DELAY_SHIFTS = (1, 2)
+# A sensor whose normalized RMS difference from the stored state is below this reads it exactly.
+AGREEMENT_TOLERANCE = 1e-6
+
+
+def _mean_is_significant(values: np.ndarray, episodes: np.ndarray) -> bool:
+    """Is the mean of ``values`` non-zero beyond chance? Episodes are the independent units
+    (neighbouring rows are correlated); with one episode, blocks of 50 rows stand in for them."""
+    groups = np.unique(episodes)
+    if len(groups) >= 3:
+        means = np.array([values[episodes == g].mean() for g in groups])
+    else:
+        means = np.array([chunk.mean() for chunk in np.array_split(values, max(2, len(values) // 50))])
+    se = means.std(ddof=1) / np.sqrt(len(means))
+    return abs(float(means.mean())) > 4.0 * se + 1e-6
 
 
 def _safe_spread(change: np.ndarray) -> np.ndarray:

@@ -48,7 +48,7 @@ def _sse(residual: np.ndarray) -> float:
 
 
 def same_target(candidate: Candidate, hypothesis: Hypothesis) -> bool:
-    return any(e.kind == candidate.kind and e.target == candidate.target for e in hypothesis)
+    return any(candidate.matches(e) for e in hypothesis)
 
 
 def screen(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidates: Sequence[Candidate]) -> list[ScreenScore]:
@@ -89,7 +89,7 @@ def screen(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidates: Seq
 
 def _interval(candidate: Candidate, value: float, residual: np.ndarray, column: np.ndarray) -> tuple[float, float]:
     """95% interval from the Jacobian column at the optimum (Gauss-Newton covariance)."""
-    if candidate.search == "integer":
+    if candidate.search in ("integer", "categorical"):
         return (value, value)
     if _calculate_intervals is not None:
         _, half = _calculate_intervals([residual.ravel()], column.reshape(-1, 1))
@@ -119,10 +119,10 @@ def fit(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candida
         value = _fit_smooth(evaluator, hypothesis, candidate, start, subset)
     elif candidate.search == "threshold":
         value, resolution = _fit_threshold(evaluator, hypothesis, candidate, subset)
-    else:
+    else:  # integers and categories: every value is tried
         value = _fit_integer(evaluator, hypothesis, candidate, subset)
     residual, = evaluator.residuals([hypothesis + (candidate.effect(value),)], subset)
-    if candidate.search == "integer":
+    if candidate.search in ("integer", "categorical"):
         interval = (value, value)
     else:
         low, high = _interval(candidate, value, residual,

@@ -20,7 +20,7 @@ import numpy as np
 
 from offdyn_bench.diagnose.data import DiagnosisInputError, Transitions
 from offdyn_bench.effects import ChannelEffects, Effect
-from offdyn_bench.effects.model import ModelEffect, apply_model_effects
+from offdyn_bench.effects.model import ModelEffect, apply_model_effects, compile_model
 from offdyn_bench.robots import ROBOTS
 from offdyn_bench.tasks import ENTRY_POINT
 
@@ -132,6 +132,7 @@ class SourceSimulator:
             raise DiagnosisInputError(f"source env {env_id!r} runs on {engine}; diagnosis predicts with MuJoCo "
                                       "(mujoco.rollout), so --env must be a MuJoCo env, e.g. the pair's source id")
         self.env_id = env_id
+        self.env_kwargs = dict(env_kwargs)
         self.env = env
         self.base_model: mujoco.MjModel = unwrapped.model
         self.frame_skip = int(unwrapped.frame_skip)
@@ -152,6 +153,25 @@ class SourceSimulator:
         self.nthread = max(1, os.cpu_count() or 1)
         self._datas = [mujoco.MjData(self.base_model) for _ in range(self.nthread)]
         self._model_cache: dict[tuple[Effect, ...], mujoco.MjModel] = {}
+        self._declared_model_effects = model_effects
+        self.xml_path: str | None = getattr(unwrapped, "fullpath", None)
+        self.compiles_from_spec = self._recompiles_exactly()
+
+    def _recompiles_exactly(self) -> bool:
+        """Whether compiling the env's XML with its declared model effects gives its model: only
+        then may geometry effects (which edit the XML's spec before compiling) be candidates."""
+        if not self.xml_path or not os.path.isfile(self.xml_path):
+            return False
+        try:
+            model = compile_model(self.xml_path, list(self._declared_model_effects))  # type: ignore[arg-type]
+        except Exception:  # an XML the env post-processes itself: not ours to rebuild
+            return False
+        base = self.base_model
+        fields = ("body_mass", "body_inertia", "body_pos", "geom_size", "geom_friction", "actuator_gear",
+                  "dof_damping", "jnt_range")
+        return (model.nq == base.nq and model.nbody == base.nbody and model.ngeom == base.ngeom
+                and all(np.allclose(getattr(model, f), getattr(base, f)) for f in fields)
+                and model.opt.timestep == base.opt.timestep)
 
     @staticmethod
     def _robot_name(env: gymnasium.Env) -> str | None:
@@ -195,8 +215,15 @@ class SourceSimulator:
         if model is None:
             if len(self._model_cache) > 512:
                 self._model_cache.clear()
-            model = copy.copy(self.base_model)
-            apply_model_effects(model, list(key))
+            if any(e.needs_spec for e in key):
+                if not self.compiles_from_spec:
+                    raise DiagnosisInputError(f"{self.env_id}'s model cannot be recompiled from its XML, so geometry "
+                                              f"effects ({', '.join(e.kind for e in key if e.needs_spec)}) cannot "
+                                              "be applied to it")
+                model = compile_model(self.xml_path, [*self._declared_model_effects, *key])  # type: ignore[arg-type, list-item]
+            else:
+                model = copy.copy(self.base_model)
+                apply_model_effects(model, list(key))
             self._model_cache[key] = model
         return model
 
@@ -226,14 +253,35 @@ class SourceSimulator:
     def calibrated_env(self, added: Sequence[Effect]) -> dict[str, Any]:
         """How to build the calibrated simulator: a registry call or ``make_robot_env`` arguments."""
         extra = [e.to_dict() for e in added]
+        # The source's own constructor arguments are part of the source: without them the recipe
+        # would rebuild a different simulator.
+        kwargs = _json_safe(self.env_kwargs)
         if self.is_suite_env:
-            return {"builder": "gymnasium.make", "env_id": self.env_id, "kwargs": {"extra_effects": extra}}
-        if self.robot is not None:
-            return {"builder": "offdyn_bench.make_robot_env", "robot": self.robot, "kwargs": {"effects": extra}}
-        return {"builder": "apply to env.unwrapped.model", "env_id": self.env_id,
+            return {"builder": "gymnasium.make", "env_id": self.env_id, "kwargs": {**kwargs, "extra_effects": extra}}
+        if self.robot is not None and not set(kwargs) & _MAKE_ONLY_KWARGS:
+            return {"builder": "offdyn_bench.make_robot_env", "robot": self.robot, "kwargs": {**kwargs, "effects": extra}}
+        return {"builder": "apply to env.unwrapped.model", "env_id": self.env_id, "env_kwargs": kwargs,
                 "effects": extra,
                 "note": "unknown robot: apply model effects with offdyn_bench.effects.apply_model_effects("
                         "env.unwrapped.model, ...) and wrap channel effects in offdyn_bench.effects.ChannelEffects"}
+
+
+# Arguments of gymnasium.make itself, not of the env's constructor.
+_MAKE_ONLY_KWARGS = {"max_episode_steps", "autoreset", "apply_api_compatibility", "disable_env_checker"}
+
+
+def _json_safe(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """Constructor arguments as JSON values (paths as strings, arrays as lists)."""
+    out: dict[str, Any] = {}
+    for key, value in kwargs.items():
+        if isinstance(value, os.PathLike):
+            value = os.fspath(value)
+        elif isinstance(value, np.ndarray):
+            value = value.tolist()
+        elif isinstance(value, tuple):
+            value = list(value)
+        out[key] = value
+    return out
 
 
 def rebuild_states(source: SourceSimulator, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:

@@ -1,0 +1,111 @@
+"""What the data can and cannot resolve about the fitted effects.
+
+At the fitted values, the Jacobian of the one-step residual with respect to every smooth effect
+(in units of each candidate's probe step, so kilograms and radians weigh alike) tells which
+combinations the data pin down: its singular values, and the directions whose singular value is
+tiny against the largest, along which the effects can move together while the prediction barely
+changes (scaling every mass and every force together, for instance).
+
+Intervals come from an episode bootstrap of the fit, linearized at the optimum: episodes are
+resampled with replacement and the Gauss-Newton step that refits every effect to the resample is
+taken. Episodes, not rows, are the independent units (rows within one are correlated, and a
+model error is shared by the rows of a state region), so these intervals are wider than the
+row-wise curvature intervals and honest about misspecification that varies across the data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+
+from offdyn_bench.diagnose.candidates import Candidate
+from offdyn_bench.diagnose.residual import Hypothesis, ResidualEvaluator
+
+# A direction whose singular value is below this fraction of the largest is not resolved: moving
+# the effects along it changes the prediction a thousand times less than the best-resolved one.
+UNRESOLVED_RATIO = 1e-3
+BOOTSTRAP_RESAMPLES = 400
+
+
+@dataclasses.dataclass(frozen=True)
+class Identifiability:
+    labels: tuple[str, ...]
+    singular_values: tuple[float, ...]
+    unresolved: tuple[dict[str, float], ...]
+    """Each unresolved direction as ``{effect label: component}`` (unit length in probe units)."""
+    intervals: dict[str, tuple[float, float]]
+    resamples: int
+
+    def to_json(self) -> dict[str, object]:
+        top = max(self.singular_values) if self.singular_values else 0.0
+        return {
+            "effects": list(self.labels),
+            "singular_values": list(self.singular_values),
+            "relative_singular_values": [s / top if top > 0 else 0.0 for s in self.singular_values],
+            "unresolved_directions": [dict(d) for d in self.unresolved],
+            "interval_method": f"episode bootstrap ({self.resamples} resamples), linearized at the fit",
+        }
+
+
+def _jacobian(evaluator: ResidualEvaluator, hypothesis: Hypothesis, fitted: Sequence[tuple[int, Candidate, float]],
+              subset: str) -> tuple[np.ndarray, np.ndarray]:
+    """Residual ``[rows, dims]`` at the fit and its Jacobian ``[rows, dims, k]`` per probe step."""
+    base, = evaluator.residuals([hypothesis], subset)
+    moved_hypotheses = []
+    steps = []
+    for index, candidate, value in fitted:
+        step = 0.2 * candidate.probe
+        if value + step > candidate.high:
+            step = -step
+        steps.append(step)
+        moved_hypotheses.append(hypothesis[:index] + (candidate.effect(value + step),) + hypothesis[index + 1:])
+    moved = evaluator.residuals(moved_hypotheses, subset)
+    columns = [(m - base) / (step / candidate.probe) for m, step, (_, candidate, _) in zip(moved, steps, fitted)]
+    return base, np.stack(columns, axis=2)
+
+
+def identifiability(evaluator: ResidualEvaluator, hypothesis: Hypothesis,
+                    fitted: Sequence[tuple[int, Candidate, float]], *, subset: str = "fit",
+                    seed: int = 0) -> Identifiability | None:
+    """Singular values, unresolved directions and episode-bootstrap intervals of the smooth
+    effects ``fitted`` (``(position in hypothesis, candidate, value)``); ``None`` if there are none."""
+    if not fitted:
+        return None
+    labels = tuple(candidate.label for _, candidate, _ in fitted)
+    residual, jacobian = _jacobian(evaluator, hypothesis, fitted, subset)
+    rows = evaluator.subsets[subset]
+    flat_j = jacobian.reshape(-1, len(fitted))
+    _, singular, right = np.linalg.svd(flat_j, full_matrices=False)
+    top = float(singular[0]) if singular.size else 0.0
+    unresolved = []
+    for s, direction in zip(singular, right):
+        if top > 0 and s < UNRESOLVED_RATIO * top and len(fitted) > 1:
+            unresolved.append({label: round(float(c), 4) for label, c in zip(labels, direction) if abs(c) > 0.05})
+
+    # Per-episode normal equations; a resample adds them up with the episode's multiplicity.
+    episodes, which = np.unique(evaluator.episode[rows], return_inverse=True)
+    k = len(fitted)
+    grams = np.zeros((len(episodes), k, k))
+    moments = np.zeros((len(episodes), k))
+    np.add.at(grams, which, np.einsum("rdk,rdl->rkl", jacobian, jacobian))
+    np.add.at(moments, which, np.einsum("rdk,rd->rk", jacobian, residual))
+    rng = np.random.default_rng(seed)
+    values = np.array([value for _, _, value in fitted])
+    probes = np.array([candidate.probe for _, candidate, _ in fitted])
+    draws = []
+    ridge = 1e-9 * max(top**2, 1e-300) * np.eye(k)
+    for _ in range(BOOTSTRAP_RESAMPLES):
+        counts = np.bincount(rng.integers(0, len(episodes), len(episodes)), minlength=len(episodes))
+        gram = np.tensordot(counts, grams, axes=1) + ridge
+        moment = np.tensordot(counts, moments, axes=1)
+        draws.append(values - probes * np.linalg.solve(gram, moment))
+    samples = np.array(draws)
+    intervals = {}
+    for i, (_, candidate, value) in enumerate(fitted):
+        low, high = np.percentile(samples[:, i], [2.5, 97.5])
+        low, high = min(low, value), max(high, value)  # a skewed resample keeps the fit inside
+        intervals[labels[i]] = (float(max(candidate.low, low)), float(min(candidate.high, high)))
+    return Identifiability(labels=labels, singular_values=tuple(float(s) for s in singular),
+                           unresolved=tuple(unresolved), intervals=intervals, resamples=BOOTSTRAP_RESAMPLES)
