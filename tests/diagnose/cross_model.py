@@ -410,16 +410,17 @@ def _differs(a: np.ndarray, b: np.ndarray) -> bool:
     return a.shape != b.shape or not np.allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
-def model_differences(target: mujoco.MjModel | None = None, *, include_derived: bool = False) -> list[str]:
-    """Every parameter difference between HalfCheetah-v5 and ``target`` (dm cheetah by default),
-    one readable line each: ``field[object]: source value -> target value``.
+def model_differences(target: mujoco.MjModel | None = None, *, source: mujoco.MjModel | None = None,
+                      include_derived: bool = False) -> list[str]:
+    """Every parameter difference between ``source`` (HalfCheetah-v5 by default) and ``target``
+    (dm cheetah by default), one readable line each: ``field[object]: source value -> target value``.
 
     Compared: every per-object field of bodies, joints, dofs, geoms and actuators (objects matched
     by name) except table addresses (:data:`BOOKKEEPING`), derived constants (:data:`DERIVED`,
     listed with ``include_derived``) and colours (:data:`RENDERING`); every ``opt`` field;
     ``qpos0``/``qpos_spring``; and the number of each kind of object.
     """
-    source = gymnasium_model()
+    source = gymnasium_model() if source is None else source
     target = dm_cheetah_model() if target is None else target
     check_mapping(target, source)
     lines: list[str] = []
