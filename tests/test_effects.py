@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import pathlib
@@ -259,6 +260,31 @@ def test_joint_range_scales_about_the_reference_pose():
     foot = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "foot_joint")
     np.testing.assert_allclose(np.degrees(base.jnt_range[foot]), [-45.0, 45.0])
     np.testing.assert_allclose(np.degrees(wider.jnt_range[foot]), [-90.0, 90.0])
+
+
+def _model_values(model: mujoco.MjModel) -> dict[str, object]:
+    """Every array field of a compiled model and every field of its options, by effect field name."""
+    values: dict[str, object] = {}
+    for owner, prefix in ((model, ""), (model.opt, "opt.")):
+        for name in dir(owner):
+            value = getattr(owner, name)
+            if not name.startswith("_") and isinstance(value, (np.ndarray, int, float)):
+                values[prefix + name] = np.array(value, copy=True)
+    return values
+
+
+@pytest.mark.parametrize("kind", sorted(k for k, cls in EFFECT_KINDS.items()
+                                        if cls.family == "model" and not cls.needs_spec))
+def test_a_model_effect_changes_only_the_fields_it_declares(kind):
+    """``fields`` is what apply_model_effects restores when a later effect fails: it must be complete."""
+    base = compile_model(_hopper_xml())
+    effect = Effect.from_dict({"kind": kind, **EXAMPLES[kind]})
+    model = copy.copy(base)
+    effect.apply_to_model(model)
+    before, after = _model_values(base), _model_values(model)
+    changed = {name for name in before if not np.array_equal(before[name], after[name], equal_nan=True)}
+    assert changed, f"{kind} changed nothing on Hopper"
+    assert changed <= set(effect.fields), changed - set(effect.fields)
 
 
 # --- parameter ranges: every parameter has one, and nothing outside it is ever built --------
