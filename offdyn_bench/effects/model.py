@@ -414,7 +414,8 @@ class BodyOffset(ModelEffect):
     def _body(self, model: mujoco.MjModel) -> int:
         b = int(body_ids(model, str(self.target))[0])
         if b == 0:
-            raise OffdynError(f"effect {self.kind!r}: {self.target!r} is the world body, which has no parent to move against")
+            raise OffdynError(f"effect {self.kind!r}: {self.target!r} is the world body, "
+                              "which has no parent to move against")
         first_joint = model.body_jntadr[b]
         if first_joint >= 0 and int(model.jnt_type[first_joint]) == int(mujoco.mjtJoint.mjJNT_FREE):
             raise OffdynError(f"effect {self.kind!r}: body {self.target!r} moves on a free joint, so its position "
@@ -501,7 +502,8 @@ class GeomSize(ModelEffect):
     def _geoms(self, model: mujoco.MjModel) -> np.ndarray:
         ids = geom_ids(model, self.target)  # type: ignore[arg-type]
         types = [mujoco.mjtGeom(model.geom_type[g]).name for g in ids]
-        named_geom = self.target is not None and mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, str(self.target)) >= 0
+        named_geom = (self.target is not None
+                      and mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, str(self.target)) >= 0)
         if named_geom and types[0] in _UNSCALABLE_GEOMS:
             raise OffdynError(f"effect {self.kind!r}: geom {self.target!r} is {_UNSCALABLE_GEOMS[types[0]]}, "
                               "whose size is not a scale of its collision shape; expected a primitive geom "
