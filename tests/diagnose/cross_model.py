@@ -131,6 +131,11 @@ import mujoco
 import numpy as np
 from gymnasium.utils import seeding
 
+from offdyn_bench.diagnose import DiagnosisSettings, Transitions
+from offdyn_bench.diagnose.residual import Hypothesis, ResidualEvaluator
+from offdyn_bench.diagnose.source import FULL_PHYSICS, SourceSimulator
+from offdyn_bench.effects import Effect
+from offdyn_bench.effects.model import ModelEffect
 from offdyn_bench.errors import OffdynError
 
 ENV_ID = "HalfCheetah-v5"
@@ -466,33 +471,11 @@ def model_differences(target: mujoco.MjModel | None = None, *, source: mujoco.Mj
 
 # --- the differences set by hand ----------------------------------------------------------------
 
-def _effect_kinds() -> Mapping[str, type]:
-    from offdyn_bench.effects import EFFECT_KINDS
-
-    return EFFECT_KINDS
-
-
-def _accepted(effect: dict[str, Any]) -> bool:
-    """Whether the vocabulary of this checkout has ``effect``'s kind and accepts its values."""
-    from offdyn_bench.effects import Effect
-
-    if effect["kind"] not in _effect_kinds():
-        return False
-    try:
-        Effect.from_dict(effect)
-    except OffdynError:
-        return False
-    return True
-
-
-def _joint_limit_effects(source: mujoco.MjModel, target: mujoco.MjModel) -> tuple[list[dict[str, Any]], list[str]]:
-    """Effects that move each differing joint limit, and the limits no effect of this checkout moves.
-
-    A range scaled about the reference position on both sides is one ``joint_range``; otherwise
-    each side moves by its own ``joint_limit`` shift (a kind still to land: until then those
-    sides are listed as not expressible)."""
+def _joint_limit_effects(source: mujoco.MjModel, target: mujoco.MjModel) -> list[dict[str, Any]]:
+    """Effects that move each joint limit of ``source`` to ``target``'s: one ``joint_range``
+    where both limits scale alike about the reference position, else a ``joint_limit`` shift
+    per side that moves."""
     effects: list[dict[str, Any]] = []
-    missing: list[str] = []
     for j in np.flatnonzero(source.jnt_limited):
         joint = _name(source, mujoco.mjtObj.mjOBJ_JOINT, j)
         (low, high), (new_low, new_high) = source.jnt_range[j], target.jnt_range[j]
@@ -500,30 +483,28 @@ def _joint_limit_effects(source: mujoco.MjModel, target: mujoco.MjModel) -> tupl
             continue
         ref = float(np.clip(source.qpos0[source.jnt_qposadr[j]], low, high))
         scales = [(new - ref) / (old - ref) if old != ref else math.nan for old, new in ((low, new_low), (high, new_high))]
-        scaled = {"kind": "joint_range", "target": joint, "scale": float(scales[0])}
-        if math.isclose(scales[0], scales[1], rel_tol=1e-9) and _accepted(scaled):
-            effects.append(scaled)
+        if math.isclose(scales[0], scales[1], rel_tol=1e-9):
+            effects.append({"kind": "joint_range", "target": joint, "scale": float(scales[0])})
             continue
         for side, old, new in (("lower", low, new_low), ("upper", high, new_high)):
-            if math.isclose(old, new, rel_tol=1e-9, abs_tol=1e-12):
-                continue
-            shift = {"kind": "joint_limit", "target": joint, "side": side, "shift": float(new - old)}
-            if _accepted(shift):
-                effects.append(shift)
-            else:
-                missing.append(f"jnt_range[{joint}] {side} {old:.6g} -> {new:.6g}")
-    return effects, missing
+            if not math.isclose(old, new, rel_tol=1e-9, abs_tol=1e-12):
+                effects.append({"kind": "joint_limit", "target": joint, "side": side, "shift": float(new - old)})
+    return effects
 
 
 def true_difference_effects(target: mujoco.MjModel | None = None) -> list[dict[str, Any]]:
     """Effect dicts that, applied to HalfCheetah-v5, reproduce ``target`` (dm cheetah by default)
-    as closely as this checkout's effect vocabulary allows: the true differences set by hand.
+    as closely as the effect vocabulary allows: the true differences set by hand.
 
     Computed from the two models: a ``gear`` scale per actuator whose gear differs, a ``friction``
     scale per geom whose sliding friction differs (only sliding counts: every geom has condim 3),
     one ``contact_solimp`` when the target's geoms share one impedance that differs from the
-    source's, and joint-limit effects per :func:`_joint_limit_effects`. What no effect expresses
-    is in :func:`account_for_differences`.
+    source's, and per joint whose range differs a ``joint_range`` scale (both limits scale alike
+    about the reference pose) or a ``joint_limit`` shift per side. For dm cheetah: gear fthigh
+    x0.75, friction floor x2.5, contact_solimp (0.9, 0.95, 0.001, 0.5, 2), joint_range on bshin
+    and ffoot, joint_limit on both sides of bthigh, bfoot, fthigh and fshin. What no effect
+    expresses is in :func:`account_for_differences`: the joint limits' solimp, the geoms'
+    angles and the self-collisions.
     """
     source = gymnasium_model()
     target = dm_cheetah_model() if target is None else target
@@ -544,7 +525,9 @@ def true_difference_effects(target: mujoco.MjModel | None = None) -> list[dict[s
         dmin, dmax, width, midpoint, power = (float(x) for x in solimp[0])
         effects.append({"kind": "contact_solimp", "target": None, "dmin": dmin, "dmax": dmax, "width": width,
                         "midpoint": midpoint, "power": power})
-    effects.extend(_joint_limit_effects(source, target)[0])
+    effects.extend(_joint_limit_effects(source, target))
+    for effect in effects:  # each one must be valid in the vocabulary
+        Effect.from_dict(effect)
     return effects
 
 
@@ -597,7 +580,6 @@ def account_for_differences(target: mujoco.MjModel | None = None) -> dict[str, s
     source = gymnasium_model()
     target = dm_cheetah_model() if target is None else target
     effects = true_difference_effects(target)
-    _, missing = _joint_limit_effects(source, target)
     by_object = {(e["kind"], e["target"]): e for e in effects}
     accounts: dict[str, str] = {}
     for line in model_differences(target):
@@ -619,9 +601,7 @@ def account_for_differences(target: mujoco.MjModel | None = None) -> dict[str, s
             accounts[line] = f"effect {by_object[('contact_solimp', None)]}"
         elif field == "jnt_range":
             moved = [e for e in effects if e["kind"] in ("joint_range", "joint_limit") and e["target"] == name]
-            unmoved = [m for m in missing if m.startswith(head)]
-            accounts[line] = "; ".join([f"effect {e}" for e in moved]
-                                       + [f"not expressible yet (no 'joint_limit' kind): {m}" for m in unmoved])
+            accounts[line] = "; ".join(f"effect {e}" for e in moved)
         elif field.startswith("jnt_") and name is not None and not limited:
             accounts[line] = "no effect on the dynamics: the root joint has no limit"
         elif field in _NOT_EXPRESSIBLE:
@@ -633,7 +613,7 @@ def account_for_differences(target: mujoco.MjModel | None = None) -> dict[str, s
 
 # --- the evaluator's errors ---------------------------------------------------------------------
 
-def _errors_json(evaluator: Any, hypothesis: tuple[Any, ...]) -> dict[str, float | None]:
+def _errors_json(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> dict[str, float | None]:
     """The numbers ``diagnose`` reports for a hypothesis (``loop._errors``), plus its noise floor."""
     summary = evaluator.summary(hypothesis)
     horizon, heldout_horizon = summary.get("horizon"), summary.get("horizon_heldout")
@@ -645,50 +625,45 @@ def _errors_json(evaluator: Any, hypothesis: tuple[Any, ...]) -> dict[str, float
             "noise_floor": _noise_floor(evaluator, hypothesis)}
 
 
-def _noise_floor(evaluator: Any, hypothesis: tuple[Any, ...]) -> float:
+def _noise_floor(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> float:
     # The floor was per hypothesis and becomes one fixed number measured from the data alone
     # (the diagnosis rewrite of issue 10); take whichever this checkout has.
     if inspect.signature(evaluator.noise_floor).parameters:
-        return float(evaluator.noise_floor(hypothesis)[0])
+        return float(evaluator.noise_floor(hypothesis)[0])  # type: ignore[call-arg]
     return float(evaluator.noise_floor()[0])
 
 
-def _evaluator(source: Any, transitions: Any) -> Any:
-    from offdyn_bench.diagnose import DiagnosisSettings
-    from offdyn_bench.diagnose.residual import ResidualEvaluator
-
+def _evaluator(source: SourceSimulator, transitions: Transitions) -> ResidualEvaluator:
     settings = DiagnosisSettings()  # the split and horizon diagnose() uses by default
     return ResidualEvaluator(source, transitions, horizon=settings.horizon, heldout_fraction=settings.heldout_fraction,
                              screen_rows=settings.screen_rows, fit_rows=settings.fit_rows, seed=settings.seed)
 
 
-def _exact_model_source(env_id: str, model: mujoco.MjModel) -> Any:
-    """The source env's observation map and control step, predicting with ``model`` instead of
-    its own. Relies on ``SourceSimulator`` rolling out with ``model_with(...)`` and ``_datas``."""
-    from offdyn_bench.diagnose.source import FULL_PHYSICS, SourceSimulator
+class ExactModelSource(SourceSimulator):
+    """The source env's observation map and control step, predicting with another model of the
+    same layout (the one that recorded the data). Relies on ``SourceSimulator`` rolling out
+    ``model_with(...)`` on its ``_datas``."""
 
-    class ExactModelSource(SourceSimulator):
-        def __init__(self) -> None:
-            super().__init__(env_id)
-            if frame_skip(model) != self.frame_skip:
-                raise CrossModelError(f"the model steps {frame_skip(model)} times per control step, {env_id} "
-                                      f"{self.frame_skip}; expected the same timestep")
-            if mujoco.mj_stateSize(model, FULL_PHYSICS) != self.state_size:
-                raise CrossModelError(f"the model's physics state has {mujoco.mj_stateSize(model, FULL_PHYSICS)} "
-                                      f"numbers, {env_id}'s {self.state_size}; expected the same layout")
-            if not hasattr(self, "_datas"):
-                raise AssertionError("SourceSimulator no longer keeps _datas: update _exact_model_source")
-            self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]
+    def __init__(self, env_id: str, model: mujoco.MjModel) -> None:
+        super().__init__(env_id)
+        if frame_skip(model) != self.frame_skip:
+            raise CrossModelError(f"the model steps {frame_skip(model)} times per control step, {env_id} "
+                                  f"{self.frame_skip}; expected the same timestep")
+        if mujoco.mj_stateSize(model, FULL_PHYSICS) != self.state_size:
+            raise CrossModelError(f"the model's physics state has {mujoco.mj_stateSize(model, FULL_PHYSICS)} "
+                                  f"numbers, {env_id}'s {self.state_size}; expected the same layout")
+        if not hasattr(self, "_datas"):
+            raise AssertionError("SourceSimulator no longer keeps _datas: update ExactModelSource")
+        self.exact_model = model
+        self._datas = [mujoco.MjData(model) for _ in range(self.nthread)]
 
-        def model_with(self, effects: Sequence[Any]) -> mujoco.MjModel:
-            if effects:
-                raise CrossModelError("the exact target model takes no effects")
-            return model
-
-    return ExactModelSource()
+    def model_with(self, effects: Sequence[ModelEffect]) -> mujoco.MjModel:
+        if effects:
+            raise CrossModelError("the exact target model takes no effects")
+        return self.exact_model
 
 
-def hand_set_errors(data: Mapping[str, np.ndarray], env_id: str = ENV_ID, *,
+def hand_set_errors(data: Mapping[str, np.ndarray] | Transitions, env_id: str = ENV_ID, *,
                     effects: Sequence[Mapping[str, Any]] | None = None,
                     target_model: mujoco.MjModel | None = None) -> dict[str, dict[str, float | None]]:
     """Held-out one-step and H-step normalized errors that the diagnosis's own evaluator
@@ -703,18 +678,14 @@ def hand_set_errors(data: Mapping[str, np.ndarray], env_id: str = ENV_ID, *,
     Spec-level effects (``needs_spec``, e.g. ``limb_size``) cannot go through the evaluator's
     ``model_with`` and are refused.
     """
-    from offdyn_bench.diagnose import Transitions
-    from offdyn_bench.diagnose.source import SourceSimulator
-    from offdyn_bench.effects import Effect
-
-    transitions = Transitions(**data)
+    transitions = data if isinstance(data, Transitions) else Transitions(**data)
     hypothesis = tuple(Effect.from_dict(e) for e in (true_difference_effects() if effects is None else effects))
-    spec_level = [e.kind for e in hypothesis if getattr(e, "needs_spec", False)]
+    spec_level = [e.kind for e in hypothesis if isinstance(e, ModelEffect) and e.needs_spec]
     if spec_level:
         raise CrossModelError(f"effects {spec_level} change geometry through mujoco.MjSpec; the evaluator's "
                               "model_with edits compiled models only, so they cannot be evaluated here")
     evaluator = _evaluator(SourceSimulator(env_id), transitions)
     out = {"stock": _errors_json(evaluator, ()), "hand_set": _errors_json(evaluator, hypothesis)}
     if target_model is not None:
-        out["exact"] = _errors_json(_evaluator(_exact_model_source(env_id, target_model), transitions), ())
+        out["exact"] = _errors_json(_evaluator(ExactModelSource(env_id, target_model), transitions), ())
     return out

@@ -31,7 +31,7 @@ from cross_model import (
 
 from offdyn_bench.diagnose import load_npz
 from offdyn_bench.diagnose.residual import NUMERICAL_FLOOR
-from offdyn_bench.effects import EFFECT_KINDS, Effect, apply_model_effects
+from offdyn_bench.effects import Effect, apply_model_effects
 
 SEED = 3
 STEPS = 1400  # seven episodes of 200 steps: two held out
@@ -209,9 +209,8 @@ def test_the_hand_set_effects_set_exactly_what_they_claim() -> None:
     remaining = _heads(model_differences(target, source=model)) - {"geom_friction[floor]"}
     unset = {line.split(":")[0] for line, account in account_for_differences().items() if not account.startswith("effect")}
     assert remaining == unset
-    if "joint_limit" in EFFECT_KINDS:
-        np.testing.assert_allclose(model.jnt_range, target.jnt_range, rtol=0, atol=1e-12)
-        assert not any(h.startswith("jnt_range") for h in remaining)
+    np.testing.assert_allclose(model.jnt_range, target.jnt_range, rtol=0, atol=1e-12)
+    assert not any(h.startswith("jnt_range") for h in remaining)
 
 
 def test_the_non_geometric_copy_differs_only_in_gear_friction_and_torso_inertia() -> None:
