@@ -3,7 +3,7 @@ diagnosis found them."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -14,10 +14,15 @@ from offdyn_bench.diagnose import Diagnosis
 
 
 def record(effects: Sequence[dict[str, Any]], steps: int, *, robot: str = "Hopper", seed: int = 0,
-           with_state: bool = True) -> dict[str, np.ndarray]:
+           with_state: bool = True, edit_model: Callable[[Any], None] | None = None,
+           **env_kwargs: Any) -> dict[str, np.ndarray]:
     """Roll a random behaviour policy with smooth and jumpy parts (excites every actuator over its
-    whole range) in ``robot`` with ``effects``; return the npz arrays of the diagnosis contract."""
-    env = make_robot_env(robot, effects=effects)
+    whole range) in ``robot`` with ``effects``; return the npz arrays of the diagnosis contract.
+    ``edit_model`` changes the compiled target model in place (an effect outside the vocabulary);
+    ``env_kwargs`` go to the robot's Gymnasium constructor."""
+    env = make_robot_env(robot, effects=effects, **env_kwargs)
+    if edit_model is not None:
+        edit_model(env.unwrapped.model)
     rng = np.random.default_rng(seed)
     columns: dict[str, list] = {k: [] for k in ("observations", "actions", "next_observations", "terminations",
                                                 "truncations", "qpos", "qvel")}
