@@ -128,9 +128,12 @@ def _named_bodies(model: mujoco.MjModel, ids: Any) -> list[tuple[int, str]]:
     return out
 
 
-def _joint_candidates(model: mujoco.MjModel, joints: np.ndarray) -> list[Candidate]:
+def _joint_candidates(model: mujoco.MjModel, joints: np.ndarray,
+                      extremes: dict[int, tuple[float, float]] | None) -> list[Candidate]:
     """Per limited hinge or slide joint: its range widened or shrunk, each limit moved on its own,
-    and the softness of its limit."""
+    and the softness of its limit. ``extremes`` (joint id -> the lowest and highest position in the
+    data) adds the natural guesses for a limit: where the recorded motion stops, or beyond where
+    it goes past the source's limit."""
     out: list[Candidate] = []
     sliding_or_hinged = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
     limited = [j for j in joints.tolist() if model.jnt_limited[j] and int(model.jnt_type[j]) in sliding_or_hinged]
@@ -144,10 +147,17 @@ def _joint_candidates(model: mujoco.MjModel, joints: np.ndarray) -> list[Candida
             continue
         out.append(Candidate("joint_range", name, 1.0, 0.2, 3.0, 0.05, "smooth", trials=(0.6, 1.5, 2.0)))
         # A limit only acts on rows that reach it: the screen also tries whole moves, not just a probe.
+        moves = (-0.3 * width, -0.1 * width, 0.1 * width, 0.3 * width)
+        lower_guess, upper_guess = (), ()
+        if extremes is not None and j in extremes:
+            seen_low, seen_high = extremes[j]
+            margin = 0.01 * width
+            lower_guess = (seen_low - margin - low,)
+            upper_guess = (seen_high + margin - high,)
         out.append(Candidate("joint_limit", name, 0.0, -width, 0.9 * width, 0.02 * width, "smooth",
-                             trials=(-0.3 * width, -0.1 * width, 0.1 * width, 0.3 * width), fixed=(("side", "lower"),)))
+                             trials=moves + lower_guess, fixed=(("side", "lower"),)))
         out.append(Candidate("joint_limit", name, 0.0, -0.9 * width, width, 0.02 * width, "smooth",
-                             trials=(-0.3 * width, -0.1 * width, 0.1 * width, 0.3 * width), fixed=(("side", "upper"),)))
+                             trials=moves + upper_guess, fixed=(("side", "upper"),)))
         timeconst, dampratio = (float(x) for x in model.jnt_solref[j])
         if timeconst > 0:  # a negative solref sets stiffness directly: another parameterization
             out.append(Candidate("joint_limit_solref", name, timeconst, 0.002, 0.3, 0.1 * timeconst, "smooth",
@@ -217,11 +227,13 @@ CONE_NAMES = {"pyramidal": "mjCONE_PYRAMIDAL", "elliptic": "mjCONE_ELLIPTIC"}
 
 
 def candidate_library(source: SourceSimulator, *, obs_bias_dims: Iterable[int] | None = None,
-                      obs_delay_dims: Iterable[int] | None = None) -> list[Candidate]:
+                      obs_delay_dims: Iterable[int] | None = None,
+                      qpos: np.ndarray | None = None) -> list[Candidate]:
     """Every candidate the vocabulary allows on ``source``'s model and observation.
 
     ``obs_bias_dims`` / ``obs_delay_dims``: the observation dimensions where the data allow that
-    observation effect (``None``: every dimension read off the state).
+    observation effect (``None``: every dimension read off the state). ``qpos``: the recorded
+    positions, which suggest where a joint's limits lie.
     """
     model = source.base_model
     out: list[Candidate] = [
@@ -256,7 +268,12 @@ def candidate_library(source: SourceSimulator, *, obs_bias_dims: Iterable[int] |
                 # Dry friction sticks or slips: a small probe says little about a large value.
                 trials = (nominal + 5 * probe, nominal + 15 * probe)
             out.append(Candidate(kind, name, nominal, 0.0, high, probe, "smooth", trials))
-    out += _joint_candidates(model, joints)
+    extremes = None
+    if qpos is not None and len(qpos):
+        address = model.jnt_qposadr
+        extremes = {int(j): (float(np.min(qpos[:, address[j]])), float(np.max(qpos[:, address[j]])))
+                    for j in joints.tolist()}
+    out += _joint_candidates(model, joints, extremes)
     out += _contact_candidates(model)
     out += _geometry_candidates(source)
     out += _solver_candidates(model)

@@ -16,14 +16,27 @@ from typing import Any
 
 import numpy as np
 
-from offdyn_bench.diagnose.candidates import DISTINGUISHING, Candidate, candidate_library
+from offdyn_bench.diagnose.candidates import (
+    DISTINGUISHING,
+    Candidate,
+    candidate_library,
+)
 from offdyn_bench.diagnose.data import Transitions, load_transitions
-from offdyn_bench.diagnose.residual import NUMERICAL_FLOOR, Hypothesis, ResidualEvaluator, block_improvement_z
 from offdyn_bench.diagnose.identifiability import Identifiability, identifiability
+from offdyn_bench.diagnose.residual import (
+    NUMERICAL_FLOOR,
+    Hypothesis,
+    ResidualEvaluator,
+    block_improvement_z,
+)
 from offdyn_bench.diagnose.search import Fit, fit, screen
 from offdyn_bench.diagnose.source import SourceSimulator
 from offdyn_bench.diagnose.stochastic import action_channel_share, estimate_action_noise
-from offdyn_bench.diagnose.systematic import Predictability, residual_predictability
+from offdyn_bench.diagnose.systematic import (
+    Predictability,
+    horizon_under_action_noise,
+    residual_predictability,
+)
 from offdyn_bench.engines.gap import engine_gap_note
 from offdyn_bench.errors import InvalidParameterError
 from offdyn_bench.versions import versions
@@ -222,7 +235,9 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                                   screen_rows=settings.screen_rows, fit_rows=settings.fit_rows, seed=settings.seed)
     check = evaluator.observation_check
     # Observation effects only where the stored states show the sensors disagree with the state.
-    library = candidate_library(source, obs_bias_dims=check.bias_allowed, obs_delay_dims=check.delay_allowed)
+    recorded_qpos = source.qpos_qvel(evaluator.states[evaluator.usable])[:, :source.base_model.nq]
+    library = candidate_library(source, obs_bias_dims=check.bias_allowed, obs_delay_dims=check.delay_allowed,
+                                qpos=recorded_qpos)
     clock["setup"] = time.perf_counter() - started
 
     tick = time.perf_counter()
@@ -323,13 +338,22 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     predictability = residual_predictability(evaluator, hypothesis, seed=settings.seed) if unexplained else None
     clock["validation"] += time.perf_counter() - tick
     if predictability is not None and predictability.systematic:
-        stop_reason += (f"; the rest is systematic (quadratic features of state and command predict "
-                        f"{predictability.heldout_r2:.0%} of it on held-out episodes), not noise")
+        stop_reason += (f"; the rest is systematic (state and command predict {predictability.heldout_r2:.0%} of it "
+                        "on held-out episodes), not noise")
     elif unexplained and len(chosen) < settings.max_effects:
         # What no deterministic effect explains may still be the spread of a noisy command.
         tick = time.perf_counter()
         noise = estimate_action_noise(evaluator, hypothesis)
+        # The noise must also explain how the error grows over H steps: kicks that are
+        # independent from step to step add up far less than a model error that keeps pushing.
+        growth = None if noise is None else horizon_under_action_noise(evaluator, hypothesis, noise.std,
+                                                                       seed=settings.seed)
         clock["validation"] += time.perf_counter() - tick
+        if noise is not None and growth is not None and not growth.consistent:
+            stop_reason += (f"; a command noise of std {noise.std:.3g} would explain the one-step spread, but the "
+                            f"{settings.horizon}-step error is {growth.ratio:.1f} times what that noise gives: "
+                            "a model error, not noise")
+            noise = None
         if noise is not None:
             candidate = Candidate("action_noise", None, 0.0, 0.0, np.inf, 0.0, "smooth")
             chosen.append((candidate, noise.std, noise.interval, False))

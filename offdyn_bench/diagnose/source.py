@@ -21,6 +21,7 @@ import numpy as np
 from offdyn_bench.diagnose.data import DiagnosisInputError, Transitions
 from offdyn_bench.effects import ChannelEffects, Effect
 from offdyn_bench.effects.model import ModelEffect, apply_model_effects, compile_model
+from offdyn_bench.errors import OffdynError
 from offdyn_bench.robots import ROBOTS
 from offdyn_bench.tasks import ENTRY_POINT
 
@@ -164,7 +165,7 @@ class SourceSimulator:
             return False
         try:
             model = compile_model(self.xml_path, list(self._declared_model_effects))  # type: ignore[arg-type]
-        except Exception:  # an XML the env post-processes itself: not ours to rebuild
+        except (OffdynError, ValueError, OSError):  # an XML the env post-processes itself: not ours to rebuild
             return False
         base = self.base_model
         fields = ("body_mass", "body_inertia", "body_pos", "geom_size", "geom_friction", "actuator_gear",

@@ -119,7 +119,6 @@ never touch under this behaviour policy.
 from __future__ import annotations
 
 import copy
-import inspect
 import math
 import numbers
 import warnings
@@ -622,15 +621,7 @@ def _errors_json(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> dict[s
             "heldout_trimmed_one_step_nrmse": summary["heldout"].trimmed_nrmse,
             "horizon_nrmse": None if horizon is None else horizon.nrmse,
             "heldout_horizon_nrmse": None if heldout_horizon is None else heldout_horizon.nrmse,
-            "noise_floor": _noise_floor(evaluator, hypothesis)}
-
-
-def _noise_floor(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> float:
-    # The floor was per hypothesis and becomes one fixed number measured from the data alone
-    # (the diagnosis rewrite of issue 10); take whichever this checkout has.
-    if inspect.signature(evaluator.noise_floor).parameters:
-        return float(evaluator.noise_floor(hypothesis)[0])  # type: ignore[call-arg]
-    return float(evaluator.noise_floor()[0])
+            "noise_floor": float(evaluator.noise_floor()[0])}  # measured from the data: the same for every hypothesis
 
 
 def _evaluator(source: SourceSimulator, transitions: Transitions) -> ResidualEvaluator:
@@ -674,16 +665,9 @@ def hand_set_errors(data: Mapping[str, np.ndarray] | Transitions, env_id: str = 
     - ``"hand_set"``: the source plus ``effects`` (default :func:`true_difference_effects`);
     - ``"exact"`` (only with ``target_model``): the model that recorded the data, a floor that
       should be ~0.
-
-    Spec-level effects (``needs_spec``, e.g. ``limb_size``) cannot go through the evaluator's
-    ``model_with`` and are refused.
     """
     transitions = data if isinstance(data, Transitions) else Transitions(**data)
     hypothesis = tuple(Effect.from_dict(e) for e in (true_difference_effects() if effects is None else effects))
-    spec_level = [e.kind for e in hypothesis if isinstance(e, ModelEffect) and e.needs_spec]
-    if spec_level:
-        raise CrossModelError(f"effects {spec_level} change geometry through mujoco.MjSpec; the evaluator's "
-                              "model_with edits compiled models only, so they cannot be evaluated here")
     evaluator = _evaluator(SourceSimulator(env_id), transitions)
     out = {"stock": _errors_json(evaluator, ()), "hand_set": _errors_json(evaluator, hypothesis)}
     if target_model is not None:

@@ -19,7 +19,11 @@ from offdyn_bench.diagnose.identifiability import UNRESOLVED_RATIO, identifiabil
 from offdyn_bench.diagnose.loop import _fix_gauge
 from offdyn_bench.diagnose.residual import ResidualEvaluator
 from offdyn_bench.diagnose.source import SourceSimulator
-from offdyn_bench.diagnose.systematic import SYSTEMATIC_R2, residual_predictability
+from offdyn_bench.diagnose.systematic import (
+    SYSTEMATIC_R2,
+    horizon_under_action_noise,
+    residual_predictability,
+)
 
 STEPS = 1000
 FAST = DiagnosisSettings(screen_rows=400, fit_rows=700)
@@ -151,3 +155,24 @@ def test_calibrated_recipe_keeps_the_source_constructor_arguments(tmp_path: Path
     for _ in range(20):
         action = rng.uniform(-1, 1, 3)
         np.testing.assert_allclose(calibrated.step(action)[0], target.step(action)[0], atol=1e-6)
+
+
+def test_a_command_miscalibrated_per_episode_is_not_called_noise() -> None:
+    """Every episode's motors carry their own constant offset (a driver recalibrated between
+    runs): zero mean over the data and unrelated to the command or the state, so a per-step
+    correction looks like noise at one step. But an offset keeps pushing, while independent kicks
+    add up like a random walk: over 10 steps the error grows far beyond what that noise gives."""
+    rng = np.random.default_rng(0)
+    parts = [record([{"kind": "action_bias", "target": None, "value": float(b)}], 200, seed=100 + k)
+             for k, b in enumerate(rng.normal(0.0, 0.15, 12))]
+    data = Transitions(**{key: np.concatenate([p[key] for p in parts]) for key in parts[0]})
+    evaluator = ResidualEvaluator(SourceSimulator("Hopper-v5"), data, screen_rows=400, fit_rows=700)
+    growth = horizon_under_action_noise(evaluator, (), 0.12)
+    assert growth is not None and not growth.consistent and growth.ratio > 2.0
+    result = diagnose("Hopper-v5", data, FAST)
+    assert "action_noise" not in {e["kind"] for e in result.effects_added}
+    assert result.unexplained_residual and "not noise" in result.stop_reason
+    # Real command noise predicts its own growth.
+    noisy = _evaluator([{"kind": "action_noise", "std": 0.1}], seed=15)
+    real = horizon_under_action_noise(noisy, (), 0.1)
+    assert real is not None and real.consistent and 0.7 < real.ratio < 1.3
