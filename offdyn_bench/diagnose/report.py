@@ -67,6 +67,24 @@ def summary_text(diagnosis: Diagnosis) -> str:
         f"noise floor {diagnosis.noise_floor:.4g}; {verdict} ({diagnosis.stop_reason}).",
     ]
     if diagnosis.effects_added:
+        lines += ["", "| effect | final value | 95% interval | interval from |", "|---|---|---|---|"]
+        for effect in diagnosis.effects_added:
+            target = "all" if effect["target"] is None else effect["target"]
+            qualifier = "".join(f" ({k} {effect[k]})" for k in ("side", "axis") if k in effect)
+            low, high = effect["interval"]
+            lines.append(f"| {effect['kind']}{qualifier} on {target} | {_value(effect)} | {_bound(low)}..{_bound(high)} "
+                         f"| {effect.get('interval_method', '')} |")
+        lines.append("")
+    identified = diagnosis.identifiability
+    if identified is not None:
+        for direction in identified.unresolved:
+            combination = ", ".join(f"{label} {component:+.2f}" for label, component in direction.items())
+            lines.append(f"not resolved by the data (the prediction barely changes along): {combination}")
+    predictability = diagnosis.residual_predictability
+    if predictability is not None:
+        lines.append(f"remaining residual: held-out R^2 {predictability.heldout_r2:.2f} from state and command "
+                     f"({'systematic: a model error' if predictability.systematic else 'no structure found'})")
+    if diagnosis.effects_added:
         env = diagnosis.calibrated_env
         effects = env.get("kwargs", {}).get("extra_effects", env.get("kwargs", {}).get("effects", env.get("effects")))
         where = env.get("env_id") or env.get("robot")
