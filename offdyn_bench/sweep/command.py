@@ -1,0 +1,64 @@
+"""``offdyn-bench sweep SPEC``: run methods x tasks x seeds, locally or on Ray, resumably.
+
+Only typer and the standard library load with this module; the spec, the registry and the
+backends load when the command runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from offdyn_bench.errors import exit_on_error
+
+
+def sweep_command(
+    spec_path: Annotated[Path, typer.Argument(metavar="SPEC", help="Sweep spec file (YAML, or JSON by its .json "
+                                                                   "suffix): methods, tasks, seeds, track, budget, "
+                                                                   "out, retries and resources.")],
+    backend: Annotated[str, typer.Option(help="local (a pool of runs on this machine) or ray (one Ray task per "
+                                              "run; ray_address in the spec, or a local Ray instance).")] = "local",
+    workers: Annotated[Optional[int], typer.Option(help="Runs at once (local; default: CPUs / cpus_per_run), or "
+                                                        "the CPUs of a local Ray instance's runs.")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Output folder (replaces the spec's out).")] = None,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="List the runs and their commands; run nothing.")] = False,
+    submit: Annotated[bool, typer.Option("--submit", help="When every run of a method is done and the sweep is a "
+                                                          "protocol result (core suite, budget, seeds), write its "
+                                                          "leaderboard submission to OUT/submission/METHOD.json.")]
+    = False,
+    description: Annotated[str, typer.Option(help="Method description for --submit.")] = "",
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress lines; only the summary.")] = False,
+) -> None:
+    """Run a sweep of training runs and their evaluations (resumable: run it again to continue)."""
+    import shlex
+
+    from offdyn_bench.sweep.execute import command_line
+    from offdyn_bench.sweep.spec import load_spec
+
+    with exit_on_error():
+        spec = load_spec(spec_path, out=out)
+        if dry_run:
+            from offdyn_bench.sweep.runs import expand, finished_evaluation
+
+            runs = expand(spec)
+            for run in runs:
+                status = "done" if finished_evaluation(run) is not None else "to run"
+                typer.echo(f"{run.run_id} ({status})")
+                for args in (run.train_args, run.evaluate_args):
+                    typer.echo("  " + shlex.join(["offdyn-bench", *args]))
+            typer.echo(f"{len(runs)} runs; python: {command_line([])[0]}")
+            return
+        from offdyn_bench.sweep.driver import run_sweep, summary_lines
+
+        report = run_sweep(spec, backend=backend, workers=workers, echo=None if quiet else _progress_echo,
+                           submit=submit, description=description)
+    for line in summary_lines(report):
+        typer.echo(line)
+    if report.failed:
+        raise typer.Exit(1)
+
+
+def _progress_echo(line: str) -> None:
+    typer.echo(line, err=True)

@@ -1,0 +1,325 @@
+"""The sweep driver: expand the spec, skip what is finished, hand the rest to a backend, retry
+failures up to ``max_retries`` times, keep the state file and the progress line current, and end
+with a summary and the leaderboard commands.
+
+The state file (``<out>/sweep.json``, replaced atomically after every change) records, per run,
+its status (``pending``, ``running``, ``done``, ``failed``), every attempt (exit code, error,
+wall and CPU time, host) and the totals. It is a record, not the source of truth: a run counts as
+done when its folder holds a complete ``evaluation.json``, so a deleted or stale state file
+loses nothing, and a run marked ``running`` by a sweep that was killed is simply run again (its
+train command resumes from the checkpoints).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import fcntl
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from baselines.run_folder import write_json_atomic
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, default_workers
+from offdyn_bench.sweep.execute import AttemptOutcome
+from offdyn_bench.sweep.runs import Run, expand, finished_evaluation, official_datasets
+from offdyn_bench.sweep.spec import SweepSpec
+
+STATE_FILE = "sweep.json"
+STATE_FORMAT = "offdyn-bench/sweep-state"
+LOCK_FILE = ".sweep.lock"
+PROGRESS_EVERY_S = 30.0
+
+Echo = Callable[[str], None]
+
+
+@dataclasses.dataclass
+class RunRecord:
+    """One run's line in the state file."""
+
+    method: str
+    task: str
+    seeds: list[int]
+    folder: str
+    log: str
+    status: str = "pending"
+    attempts: int = 0
+    """Attempts over every invocation of the sweep."""
+    wall_time_s: float = 0.0
+    cpu_time_s: float = 0.0
+    mean_return: float | None = None
+    error: str | None = None
+    history: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+
+    @classmethod
+    def of(cls, run: Run, stored: dict[str, Any] | None) -> RunRecord:
+        record = cls(method=run.method, task=run.task, seeds=list(run.seeds), folder=str(run.folder),
+                     log=str(run.log))
+        if isinstance(stored, dict):
+            history = stored.get("history")
+            record.history = list(history) if isinstance(history, list) else []
+            record.attempts = len(record.history)
+            record.wall_time_s = float(sum(a.get("wall_time_s") or 0.0 for a in record.history if isinstance(a, dict)))
+            record.cpu_time_s = float(sum(a.get("cpu_time_s") or 0.0 for a in record.history if isinstance(a, dict)))
+        return record
+
+    def add(self, outcome: AttemptOutcome) -> None:
+        self.attempts += 1
+        self.history.append({"attempt": self.attempts, **outcome.to_dict()})
+        self.wall_time_s = round(self.wall_time_s + outcome.wall_time_s, 3)
+        self.cpu_time_s = round(self.cpu_time_s + outcome.cpu_time_s, 3)
+
+
+@dataclasses.dataclass
+class SweepReport:
+    """What a sweep ended with."""
+
+    spec: SweepSpec
+    runs: list[Run]
+    records: dict[str, RunRecord]
+    launched: int
+    """Attempts started by this invocation (0: everything was already done)."""
+    submissions: dict[str, list[str]]
+    """Per method whose runs all finished: [] when its merged folder is a leaderboard submission,
+    else the reasons it is not."""
+    submitted: dict[str, Path]
+    state_path: Path
+
+    @property
+    def failed(self) -> list[Run]:
+        return [run for run in self.runs if self.records[run.run_id].status == "failed"]
+
+
+def _check_out(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise OffdynError(f"out {str(out)!r} exists and is not a folder; expected the sweep's output folder")
+    ancestor = out.absolute()
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir() or not os.access(ancestor, os.W_OK | os.X_OK):
+        raise OffdynError(f"out {str(out)!r} cannot be written: {str(ancestor)!r} is not a writable folder")
+
+
+@contextmanager
+def _sweep_lock(out: Path) -> Iterator[None]:
+    """One sweep driver per output folder at a time (a second one stops at once, naming it)."""
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise OffdynError(f"another sweep is running on {str(out)!r} (its {LOCK_FILE} is locked); wait for "
+                                  "it or use another out") from None
+            raise
+        yield
+    finally:
+        os.close(fd)
+
+
+def _read_state(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        # The record only: run folders say what is done. A damaged one is started afresh.
+        return {}
+    return data if isinstance(data, dict) and data.get("format") == STATE_FORMAT else {}
+
+
+def format_duration(seconds: float | None) -> str:
+    if seconds is None or not math.isfinite(seconds):
+        return "?"
+    seconds = int(round(seconds))
+    hours, rest = divmod(seconds, 3600)
+    minutes, secs = divmod(rest, 60)
+    return f"{hours}h{minutes:02d}m" if hours else (f"{minutes}m{secs:02d}s" if minutes else f"{secs}s")
+
+
+class _Progress:
+    """Counts and ETA of the whole sweep, printed on every change and every PROGRESS_EVERY_S."""
+
+    def __init__(self, echo: Echo | None, total: int) -> None:
+        self.echo, self.total = echo, total
+        self.walls: list[float] = []
+        self.last_line, self.last_time = "", 0.0
+
+    def line(self, records: dict[str, RunRecord], capacity: int) -> str:
+        counts = {status: 0 for status in ("done", "running", "failed", "pending")}
+        for record in records.values():
+            counts[record.status] = counts.get(record.status, 0) + 1
+        remaining = counts["running"] + counts["pending"]
+        eta = None
+        if remaining == 0:
+            eta = 0.0
+        elif self.walls:
+            eta = sum(self.walls) / len(self.walls) * remaining / max(1, min(capacity, remaining))
+        return (f"sweep: {counts['done']}/{self.total} done, {counts['running']} running, {counts['failed']} failed, "
+                f"{counts['pending']} pending; ETA {format_duration(eta)}")
+
+    def show(self, records: dict[str, RunRecord], capacity: int, force: bool = False) -> None:
+        if self.echo is None:
+            return
+        text = self.line(records, capacity)
+        now = time.monotonic()
+        if force or text != self.last_line or now - self.last_time >= PROGRESS_EVERY_S:
+            self.echo(text)
+            self.last_line, self.last_time = text, now
+
+
+def make_backend(name: str, spec: SweepSpec, workers: int | None) -> Backend:
+    if name == "local":
+        return LocalBackend(workers if workers is not None else default_workers(spec.cpus_per_run))
+    if name == "ray":
+        local_cpus = None if workers is None else max(1, math.ceil(workers * spec.cpus_per_run))
+        return RayBackend(address=spec.ray_address, cpus_per_run=spec.cpus_per_run,
+                          gpus_per_run=spec.gpus_per_run, local_cpus=local_cpus)
+    raise OffdynError(f"--backend {name!r}; expected local or ray")
+
+
+def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = None, echo: Echo | None = print,
+              submit: bool = False, description: str = "") -> SweepReport:
+    """Run every run of ``spec`` that is not finished; return the report (failed runs included)."""
+    if backend not in ("local", "ray"):
+        raise OffdynError(f"--backend {backend!r}; expected local or ray")
+    if workers is not None and workers < 1:
+        raise OffdynError(f"--workers {workers}: expected an integer >= 1")
+    runs = expand(spec)  # every refusal before anything is written
+    _check_out(spec.out)
+    say = echo or (lambda _line: None)
+    with _sweep_lock(spec.out):
+        state_path = spec.out / STATE_FILE
+        stored = _read_state(state_path).get("runs") or {}
+        records = {run.run_id: RunRecord.of(run, stored.get(run.run_id)) for run in runs}
+        others = {key: value for key, value in stored.items() if key not in records}
+
+        def save() -> None:
+            write_json_atomic(state_path, {
+                "format": STATE_FORMAT, "format_version": 1, "spec": spec.to_dict(), "backend": backend,
+                "runs": {key: dataclasses.asdict(record) for key, record in records.items()} | others,
+            })
+
+        pending = []
+        for run in runs:
+            record = records[run.run_id]
+            evaluation = finished_evaluation(run)
+            if evaluation is not None:
+                record.status, record.error = "done", None
+                returns = [float(x) for seed in evaluation["seeds"] for x in seed["returns"]]
+                record.mean_return = sum(returns) / len(returns)
+            else:
+                record.status = "pending"
+                pending.append(run)
+        save()
+        skipped = len(runs) - len(pending)
+        say(f"sweep: {len(runs)} runs under {spec.out} ({skipped} already evaluated, {len(pending)} to run)")
+
+        launched = 0
+        if pending:
+            for dataset in official_datasets(pending):
+                from offdyn_bench.datasets.ensure import ensure_dataset
+
+                ensure_dataset(dataset, progress=False, echo=lambda line: say(f"dataset: {line}"))
+            engine = make_backend(backend, spec, workers)
+            progress = _Progress(echo, len(runs))
+            progress.walls = [records[run.run_id].wall_time_s for run in runs
+                              if records[run.run_id].status == "done" and records[run.run_id].wall_time_s > 0]
+            tries_left = {run.run_id: 1 + spec.max_retries for run in pending}
+            in_flight: dict[Any, Run] = {}
+            try:
+                while pending or in_flight:
+                    capacity = engine.capacity
+                    while pending and len(in_flight) < capacity:
+                        run = pending.pop(0)
+                        record = records[run.run_id]
+                        record.status = "running"
+                        in_flight[engine.submit(run, record.attempts + 1)] = run
+                        launched += 1
+                    save()
+                    progress.show(records, capacity)
+                    for handle in engine.wait(list(in_flight), timeout=min(PROGRESS_EVERY_S, 5.0)):
+                        run = in_flight.pop(handle)
+                        record = records[run.run_id]
+                        outcome = engine.outcome(handle, run)
+                        record.add(outcome)
+                        tries_left[run.run_id] -= 1
+                        if outcome.ok:
+                            record.status, record.error, record.mean_return = "done", None, outcome.mean_return
+                            progress.walls.append(record.wall_time_s)
+                        elif tries_left[run.run_id] > 0:
+                            record.status, record.error = "pending", outcome.error
+                            say(f"sweep: {run.run_id} attempt {record.attempts} failed ({outcome.error}); "
+                                f"retrying ({tries_left[run.run_id]} attempt(s) left)")
+                            pending.append(run)
+                        else:
+                            record.status, record.error = "failed", outcome.error
+                            say(f"sweep: {run.run_id} failed after {record.attempts} attempt(s): {outcome.error}")
+                    save()
+            finally:
+                for run in in_flight.values():
+                    # Interrupted: the next sweep runs it again, resuming from its checkpoints.
+                    records[run.run_id].status = "pending"
+                save()
+                engine.close()
+            progress.show(records, 0, force=True)
+
+        submissions: dict[str, list[str]] = {}
+        submitted: dict[str, Path] = {}
+        from offdyn_bench.sweep.submission import leaderboard_blockers, submit as submit_method, \
+            write_submission_folder
+
+        for method in spec.methods:
+            method_runs = [run for run in runs if run.method == method]
+            if any(records[run.run_id].status != "done" for run in method_runs):
+                continue
+            folder = write_submission_folder(spec, method, method_runs)
+            merged = [json.loads(path.read_text()) for path in sorted(folder.glob("*/evaluation.json"))]
+            reasons = [reason for record in merged for reason in leaderboard_blockers(spec, record)]
+            submissions[method] = list(dict.fromkeys(reasons))
+            if submit and not submissions[method]:
+                submitted[method] = submit_method(spec, method, description)
+        return SweepReport(spec=spec, runs=runs, records=records, launched=launched, submissions=submissions,
+                           submitted=submitted, state_path=state_path)
+
+
+def summary_lines(report: SweepReport) -> list[str]:
+    """The summary table, then what to do with the results."""
+    from offdyn_bench.sweep.submission import SUBMISSION_DIR, submit_command
+
+    header = f"{'run':58s} {'status':7s} {'tries':>5s} {'wall':>8s} {'cpu':>8s} {'return':>9s}"
+    lines = [header, "-" * len(header)]
+    for run in report.runs:
+        record = report.records[run.run_id]
+        mean = f"{record.mean_return:9.1f}" if record.mean_return is not None else f"{'-':>9s}"
+        lines.append(f"{run.run_id:58s} {record.status:7s} {record.attempts:5d} "
+                     f"{format_duration(record.wall_time_s):>8s} {format_duration(record.cpu_time_s):>8s} {mean}")
+    done = sum(report.records[run.run_id].status == "done" for run in report.runs)
+    total_wall = sum(report.records[run.run_id].wall_time_s for run in report.runs)
+    total_cpu = sum(report.records[run.run_id].cpu_time_s for run in report.runs)
+    lines.append(f"{done}/{len(report.runs)} runs done, {len(report.failed)} failed; compute over all attempts: "
+                 f"{format_duration(total_wall)} wall, {format_duration(total_cpu)} CPU; state: {report.state_path}")
+    for run in report.failed:
+        record = report.records[run.run_id]
+        lines.append(f"failed: {run.run_id} after {record.attempts} attempt(s): {record.error} (log: {run.log})")
+    for method in report.spec.methods:
+        if method not in report.submissions:
+            lines.append(f"{method}: not every run finished; no merged evaluations yet")
+            continue
+        folder = report.spec.out / SUBMISSION_DIR / method
+        reasons = report.submissions[method]
+        if method in report.submitted:
+            lines.append(f"{method}: wrote the submission {report.submitted[method]} (validated)")
+        elif reasons:
+            lines.append(f"{method}: merged evaluations in {folder}; not a leaderboard submission: "
+                         + "; ".join(reasons))
+        else:
+            lines.append(f"{method}: submit with: {submit_command(report.spec, method)}")
+    return lines

@@ -1,0 +1,138 @@
+"""One attempt at one run, as a worker executes it (in a thread of the local pool or a Ray task):
+``offdyn-bench train`` then ``offdyn-bench evaluate``, each in a subprocess.
+
+Subprocesses keep a crash, a kill or a leak of one run out of the sweep, and they are the very
+commands a person would type. A run folder that already holds ``result.json`` is only evaluated
+(``train`` refuses a finished folder); one with checkpoints resumes from them (``train`` does it).
+Both commands append to the run's log, under a header naming the attempt.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shlex
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from offdyn_bench.sweep.runs import CONFIG_FILE, EVALUATION_FILE, RESULT_FILE, Run, finished_evaluation
+
+
+@dataclasses.dataclass(frozen=True)
+class AttemptOutcome:
+    """What one attempt did, as the state file records it."""
+
+    ok: bool
+    stage: str
+    """The last stage reached: ``train``, ``evaluate`` or ``check`` (the written evaluation)."""
+    exit_code: int | None
+    """Of the failing command (negative: killed by that signal); None when no command failed."""
+    error: str | None
+    wall_time_s: float
+    cpu_time_s: float
+    """User plus system CPU time of the attempt's subprocesses."""
+    host: str
+    mean_return: float | None = None
+    """Mean target return over the evaluated seeds and episodes (when ``ok``)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def command_line(args: tuple[str, ...] | list[str]) -> list[str]:
+    """The full command of ``offdyn-bench <args>``: this interpreter running the package, so a
+    worker uses the environment it was started in, with or without the console script on PATH."""
+    return [sys.executable, "-m", "offdyn_bench", *args]
+
+
+def execute_run(run: Run, attempt: int) -> AttemptOutcome:
+    """Train (unless finished) and evaluate ``run``; never raises for a failing command."""
+    host = socket.gethostname()
+    started = time.monotonic()
+    cpu = 0.0
+    run.log.parent.mkdir(parents=True, exist_ok=True)
+    with open(run.log, "a", buffering=1) as log:
+        log.write(f"=== attempt {attempt} of {run.run_id} on {host}, {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+
+        def outcome(ok: bool, stage: str, exit_code: int | None = None, error: str | None = None,
+                    mean_return: float | None = None) -> AttemptOutcome:
+            result = AttemptOutcome(ok=ok, stage=stage, exit_code=exit_code, error=error,
+                                    wall_time_s=round(time.monotonic() - started, 3), cpu_time_s=round(cpu, 3),
+                                    host=host, mean_return=mean_return)
+            log.write(f"=== attempt {attempt}: {'done' if ok else 'failed at ' + stage}"
+                      + (f" ({error})" if error else "") + "\n")
+            return result
+
+        if (run.folder / RESULT_FILE).exists():
+            mismatch = _finished_run_mismatch(run)
+            if mismatch is not None:
+                return outcome(False, "train", error=mismatch)
+            log.write(f"=== {run.folder} holds a finished training run (result.json): evaluating it\n")
+        else:
+            checkpoints = sorted((run.folder / "checkpoints").glob("step_*")) if run.folder.is_dir() else []
+            if checkpoints:
+                log.write(f"=== resuming: {run.folder} holds checkpoints up to {checkpoints[-1].name}\n")
+            code, used = _run_logged(command_line(run.train_args), log)
+            cpu += used
+            if code != 0:
+                return outcome(False, "train", code, _exit_text("train", code, run.log))
+        code, used = _run_logged(command_line(run.evaluate_args), log)
+        cpu += used
+        if code != 0:
+            return outcome(False, "evaluate", code, _exit_text("evaluate", code, run.log))
+        record = finished_evaluation(run)
+        if record is None:
+            return outcome(False, "check", error=f"{run.folder / EVALUATION_FILE} does not hold the expected "
+                                                 f"{run.evaluation_episodes} episodes of seeds {list(run.seeds)}")
+        returns = [float(x) for seed in record["seeds"] for x in seed["returns"]]
+        return outcome(True, "check", mean_return=sum(returns) / len(returns))
+
+
+def _run_logged(command: list[str], log: Any) -> tuple[int, float]:
+    """Run ``command`` with its output appended to ``log``; (exit code, CPU seconds it used)."""
+    log.write(f"$ {shlex.join(command)}\n")
+    log.flush()
+    process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    # wait4 reports this child's own resource use, exact even while other threads run other children.
+    _, status, usage = os.wait4(process.pid, 0)
+    process.returncode = os.waitstatus_to_exitcode(status)
+    return process.returncode, usage.ru_utime + usage.ru_stime
+
+
+def _exit_text(stage: str, code: int, log: Path) -> str:
+    if code < 0:
+        return f"{stage} was killed by signal {-code}; see {log}"
+    return f"{stage} exited with code {code}: {_last_error_line(log)}; see {log}"
+
+
+def _last_error_line(log: Path) -> str:
+    """The command's own last ``error: ...`` line, else its last output line."""
+    try:
+        lines = [line.strip() for line in log.read_text(errors="replace").splitlines()
+                 if line.strip() and not line.startswith("$ ") and not line.startswith("===")]
+    except OSError:
+        return "no output"
+    errors = [line for line in lines if line.startswith("error:")]
+    text = (errors or lines or ["no output"])[-1]
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def _finished_run_mismatch(run: Run) -> str | None:
+    """Why the finished run in ``run.folder`` is not this run (another method, task, seeds or
+    step count), or None."""
+    try:
+        config = json.loads((run.folder / CONFIG_FILE).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        return f"{run.folder / CONFIG_FILE} cannot be read ({error}); move the folder away to retrain"
+    expected = {"algo": run.method, "task": run.task, "seeds": list(run.seeds), "steps": run.steps}
+    differs = [key for key, value in expected.items() if config.get(key) != value] if isinstance(config, dict) \
+        else list(expected)
+    if differs:
+        return (f"{run.folder} holds a finished run with other settings (differs in: {', '.join(differs)}); "
+                "move it away or change the sweep's out")
+    return None

@@ -1,0 +1,203 @@
+"""A sweep spec expanded into runs: one per method x task x group of seeds, each with its folder,
+its log and the exact ``offdyn-bench train`` and ``evaluate`` commands it executes.
+
+Everything the protocol or the algorithm registry refuses (an unknown method, task or setting, a
+method on a track it does not fit, a method that needs a target dataset its task lacks) is found
+here, all of it in one error, before any run starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from offdyn_bench.sweep.spec import CORE, SpecError, SweepSpec
+
+RUNS_DIR, LOGS_DIR = "runs", "logs"
+EVALUATION_FILE, RESULT_FILE, CONFIG_FILE = "evaluation.json", "result.json", "config.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """One training run and its evaluation: what the sweep hands to a worker."""
+
+    method: str
+    task: str
+    seeds: tuple[int, ...]
+    folder: Path
+    """The run folder (``train --out``); ``evaluate`` writes its ``evaluation.json`` there."""
+    log: Path
+    """stdout and stderr of every attempt, appended."""
+    train_args: tuple[str, ...]
+    """Arguments of ``offdyn-bench`` for training (``train ...``)."""
+    evaluate_args: tuple[str, ...]
+    """Arguments of ``offdyn-bench`` for the evaluation (``evaluate ...``)."""
+    steps: int
+    evaluation_episodes: int
+    official_dataset: str | None = None
+    """The track's official dataset the run trains on (None: no dataset, or the spec's own)."""
+
+    @property
+    def run_id(self) -> str:
+        """``method/task/seed-S`` (or ``seeds-S-E``): the run's name in the state file and its folder."""
+        return f"{self.method}/{self.task}/{seed_label(self.seeds)}"
+
+
+def seed_label(seeds: Sequence[int]) -> str:
+    return f"seed-{seeds[0]}" if len(seeds) == 1 else f"seeds-{seeds[0]}-{seeds[-1]}"
+
+
+def task_names(spec: SweepSpec) -> tuple[str, ...]:
+    from offdyn_bench.protocol import CORE_SUITE
+
+    return tuple(CORE_SUITE) if spec.tasks == CORE else tuple(spec.tasks)  # type: ignore[arg-type]
+
+
+def seed_groups(seeds: Sequence[int], per_run: int) -> list[tuple[int, ...]]:
+    """Consecutive seeds, at most ``per_run`` to a group (``train`` takes ``--seed S --n-seeds K``)."""
+    groups: list[list[int]] = []
+    for seed in sorted(seeds):
+        if groups and len(groups[-1]) < per_run and groups[-1][-1] == seed - 1:
+            groups[-1].append(seed)
+        else:
+            groups.append([seed])
+    return [tuple(group) for group in groups]
+
+
+def steps_of(spec: SweepSpec) -> int:
+    from offdyn_bench.protocol import get_budget
+
+    return get_budget(spec.budget).source_steps if spec.budget is not None else int(spec.steps or 0)
+
+
+def expand(spec: SweepSpec) -> list[Run]:
+    """The spec's runs, in method, task, seed order; a :class:`SpecError` listing every refusal."""
+    from baselines.algorithms import apply_overrides, get_algorithm
+    from offdyn_bench.errors import OffdynError
+    from offdyn_bench.protocol import get_budget, get_track, official_dataset
+    from offdyn_bench.protocol.definition import check_method_on_track
+    from offdyn_bench.tasks import get_task
+
+    where = spec.source
+    try:
+        get_track(spec.track)
+    except OffdynError as error:
+        raise SpecError(f"{where}: track: {error}") from None
+    if spec.budget is not None:
+        try:
+            get_budget(spec.budget)
+        except OffdynError as error:
+            raise SpecError(f"{where}: budget: {error}") from None
+    needs_dataset: dict[str, bool] = {}
+    for method in spec.methods:
+        try:
+            algorithm = get_algorithm(method)
+        except OffdynError as error:
+            raise SpecError(f"{where}: methods: {error}") from None
+        try:
+            config = apply_overrides(algorithm.default_config(), dict(spec.overrides.get(method, {})), method)
+        except OffdynError as error:
+            raise SpecError(f"{where}: overrides.{method}: {error}") from None
+        # The trainer's rule (baselines/train.py): DARC with target_data=online takes no dataset.
+        needs_dataset[method] = algorithm.needs_dataset and getattr(config, "target_data", "offline") != "online"
+    tasks = []
+    for task in task_names(spec):
+        try:
+            tasks.append(get_task(task).name)
+        except OffdynError as error:
+            raise SpecError(f"{where}: tasks: {error}") from None
+
+    refused = []
+    for method in spec.methods:
+        try:
+            check_method_on_track(method, spec.track)
+        except OffdynError as error:
+            refused.append(str(error))
+    if refused:
+        raise SpecError(f"{where}: the protocol refuses {len(refused)} method(s) on track {spec.track!r}: "
+                        + "; ".join(refused) + "; remove them or run them in a sweep of their own track")
+    if spec.dataset is None:
+        lacking = [f"{method} on {task}" for method in spec.methods if needs_dataset[method] for task in tasks
+                   if not _has_official_dataset(official_dataset, task, spec.track)]
+        if lacking:
+            raise SpecError(f"{where}: no official {spec.track} dataset for {', '.join(lacking)}; these methods "
+                            "need target data: set dataset (e.g. collect:random:5000) or drop those tasks")
+
+    steps = steps_of(spec)
+    root = spec.out
+    runs = []
+    for method in spec.methods:
+        for task in tasks:
+            for seeds in seed_groups(spec.seeds, spec.seeds_per_run):
+                folder = root / RUNS_DIR / method / task / seed_label(seeds)
+                log = root / LOGS_DIR / method / task / f"{seed_label(seeds)}.log"
+                runs.append(Run(method=method, task=task, seeds=seeds, folder=folder, log=log,
+                                train_args=tuple(_train_args(spec, method, task, seeds, folder,
+                                                             needs_dataset[method])),
+                                evaluate_args=tuple(_evaluate_args(spec, folder)),
+                                steps=steps, evaluation_episodes=spec.evaluation_episodes,
+                                official_dataset=(official_dataset(task, spec.track)
+                                                  if needs_dataset[method] and spec.dataset is None else None)))
+    return runs
+
+
+def _has_official_dataset(official_dataset: Any, task: str, track: str) -> bool:
+    from offdyn_bench.datasets import read_manifest
+
+    official = official_dataset(task, track)
+    return official is not None and official in read_manifest()
+
+
+def _train_args(spec: SweepSpec, method: str, task: str, seeds: tuple[int, ...], folder: Path,
+                needs_dataset: bool) -> list[str]:
+    args = ["train", method, "--task", task, "--track", spec.track]
+    args += ["--budget", spec.budget] if spec.budget is not None else ["--steps", str(spec.steps)]
+    args += ["--seed", str(seeds[0]), "--n-seeds", str(len(seeds)), "--device", spec.device,
+             "--threads", str(max(1, int(spec.cpus_per_run))), "--no-progress"]
+    if needs_dataset and spec.dataset is not None:
+        args += ["--dataset", spec.dataset]
+    for option, value in (("--eval-every", spec.training.eval_every),
+                          ("--eval-episodes", spec.training.eval_episodes),
+                          ("--checkpoint-every", spec.training.checkpoint_every)):
+        if value is not None:
+            args += [option, str(value)]
+    for key, value in spec.overrides.get(method, {}).items():
+        args += ["--set", f"{key}={value}"]
+    return args + ["--out", str(folder)]
+
+
+def _evaluate_args(spec: SweepSpec, folder: Path) -> list[str]:
+    # --track also for the reference methods (sac-source, sac-target): their records then name the
+    # track they are submitted beside, like every other run of the sweep.
+    return ["evaluate", "--agent", str(folder), "--track", spec.track, "--episodes", str(spec.evaluation_episodes),
+            "--no-progress"]
+
+
+def official_datasets(runs: Sequence[Run]) -> list[str]:
+    """Official datasets the runs train on, each once: the sweep installs them before any run
+    starts, so concurrent runs never install one dataset at the same time."""
+    return list(dict.fromkeys(run.official_dataset for run in runs if run.official_dataset is not None))
+
+
+def finished_evaluation(run: Run) -> dict[str, Any] | None:
+    """The run's ``evaluation.json`` when it is a complete evaluation of exactly this run (its
+    method, task, seeds, steps and episode count, in the target); otherwise None."""
+    path = run.folder / EVALUATION_FILE
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if not isinstance(record, dict) or record.get("format") != "offdyn-bench/evaluation":
+        return None
+    seeds = record.get("seeds")
+    if not isinstance(seeds, list) or not all(isinstance(s, dict) for s in seeds):
+        return None
+    same = (record.get("method") == run.method and record.get("task") == run.task
+            and record.get("steps") == run.steps and record.get("side", "target") == "target"
+            and sorted(s.get("seed") for s in seeds) == list(run.seeds)  # type: ignore[type-var]
+            and all(isinstance(s.get("returns"), list) and len(s["returns"]) == run.evaluation_episodes
+                    for s in seeds))
+    return record if same else None
