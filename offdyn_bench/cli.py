@@ -40,6 +40,8 @@ SUB_COMMANDS: dict[str, SubCommand] = {
                            "deterministic actions, fixed episode seeds; writes raw per-episode returns with versions."),
     "protocol": SubCommand("offdyn_bench.protocol.command", "protocol_app",
                            "The fixed evaluation protocol: show it, record reference scores, score results."),
+    "sweep": SubCommand("offdyn_bench.sweep.command", "sweep_command",
+                        "Run a sweep of training runs and their evaluations (resumable: run it again to continue)."),
     "leaderboard": SubCommand("leaderboard.cli", "leaderboard_app",
                               "Leaderboard: assemble and validate submissions, render the board, serve it."),
     "diagnose": SubCommand("offdyn_bench.diagnose.command", "diagnose_command",
