@@ -233,7 +233,9 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
                         "(or auto), or gpus_per_run: 0")
 
     return SweepSpec(source=source, methods=tuple(methods), tasks=CORE if tasks == CORE else tuple(tasks),
-                     seeds=seeds, track=track, budget=budget, steps=steps, out=Path(out_value),
+                     # Absolute: the runs' commands execute in other processes, and under Ray in other
+                     # working folders (on a cluster, out must be on a filesystem every node shares).
+                     seeds=seeds, track=track, budget=budget, steps=steps, out=Path(out_value).absolute(),
                      seeds_per_run=seeds_per_run, device=device, dataset=dataset,
                      evaluation_episodes=evaluation_episodes, training=training, overrides=overrides,
                      max_retries=max_retries, cpus_per_run=cpus_per_run, gpus_per_run=gpus_per_run,
