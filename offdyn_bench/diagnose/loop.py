@@ -159,6 +159,7 @@ class Diagnosis:
     identifiability: Identifiability | None = None
     observation_check: dict[str, Any] = dataclasses.field(default_factory=dict)
     noise_floor_source: str = ""
+    candidates_searched: int = 0
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -172,6 +173,7 @@ class Diagnosis:
             "error_after": self.error_after.to_json(),
             "noise_floor": self.noise_floor,
             "noise_floor_source": self.noise_floor_source,
+            "candidates_searched": self.candidates_searched,
             "observation_channel": self.observation_check,
             "unexplained_residual": self.unexplained_residual,
             "residual_predictability": (None if self.residual_predictability is None
@@ -405,7 +407,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         observation_check={"bias_candidates": [source.observation_map.names[d] for d in check.bias_allowed],
                            "delay_candidates": [source.observation_map.names[d] for d in check.delay_allowed],
                            "largest_discrepancy": check.max_discrepancy},
-        noise_floor_source=check.floor_source)
+        noise_floor_source=check.floor_source, candidates_searched=len(library))
 
 
 Chosen = tuple[Candidate, float, tuple[float, float], bool]
