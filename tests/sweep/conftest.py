@@ -1,0 +1,59 @@
+"""Tiny sweeps: RL on source on an InvertedPendulum pair, a few hundred steps, 32x32 networks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+TASK = "invertedpendulum-gravity-3.0"
+TINY_OVERRIDES = {"sac.hidden_sizes": [32, 32], "sac.batch_size": 32, "random_steps": 40}
+
+
+def _tiny_spec(out: Path, **changes: Any) -> dict[str, Any]:
+    spec = {"methods": ["sac-source"], "tasks": [TASK], "seeds": 2, "track": "offline-target", "steps": 300,
+            "out": str(out), "evaluation_episodes": 2,
+            "training": {"eval_episodes": 1, "checkpoint_every": 100},
+            "overrides": {"sac-source": dict(TINY_OVERRIDES)}, "max_retries": 1}
+    spec.update(changes)
+    return spec
+
+
+def _write_spec(path: Path, spec: dict[str, Any]) -> Path:
+    path.write_text(json.dumps(spec))
+    return path
+
+
+def _attempt_headers(log: Path) -> int:
+    return sum(line.startswith("=== attempt ") and " of " in line for line in log.read_text().splitlines())
+
+
+@pytest.fixture
+def tiny_spec():
+    """``tiny_spec(out, **changes)``: the spec of a tiny sweep (2 seeds, 300 steps) as data."""
+    return _tiny_spec
+
+
+@pytest.fixture
+def write_spec():
+    """``write_spec(path, spec)``: the spec as a JSON file."""
+    return _write_spec
+
+
+@pytest.fixture
+def attempt_headers():
+    """``attempt_headers(log)``: how many attempts a run's log records."""
+    return _attempt_headers
+
+
+@pytest.fixture(scope="module")
+def finished_sweep(tmp_path_factory):
+    """A tiny sweep run once with the local backend (2 runs, 2 workers), shared by a module's tests."""
+    from offdyn_bench.sweep import parse_spec
+    from offdyn_bench.sweep.driver import run_sweep
+
+    root = tmp_path_factory.mktemp("sweep")
+    report = run_sweep(parse_spec(_tiny_spec(root / "out"), source="tiny"), workers=2, echo=None)
+    return report
