@@ -1,0 +1,174 @@
+"""The local backend: a tiny sweep end to end, skipping on re-run, retries of a failing run, and
+runs killed mid-training (the train subprocess alone, or the whole sweep) losing nothing."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from offdyn_bench.cli import app
+from offdyn_bench.sweep import parse_spec
+from offdyn_bench.sweep.driver import STATE_FILE, run_sweep, summary_lines
+from offdyn_bench.sweep.runs import expand
+
+TASK = "invertedpendulum-gravity-3.0"
+runner = CliRunner()
+
+
+def _state(out: Path) -> dict:
+    return json.loads((out / STATE_FILE).read_text())
+
+
+def test_a_tiny_sweep_trains_and_evaluates_every_run(finished_sweep):
+    report = finished_sweep
+    out = report.spec.out
+    assert [run.run_id for run in report.runs] == [f"sac-source/{TASK}/seed-0", f"sac-source/{TASK}/seed-1"]
+    state = _state(out)
+    for run in report.runs:
+        evaluation = json.loads((run.folder / "evaluation.json").read_text())
+        assert evaluation["method"] == "sac-source" and [s["seed"] for s in evaluation["seeds"]] == list(run.seeds)
+        assert len(evaluation["seeds"][0]["returns"]) == 2
+        entry = state["runs"][run.run_id]
+        assert entry["status"] == "done" and entry["attempts"] == 1
+        assert entry["wall_time_s"] > 0 and entry["cpu_time_s"] > 0
+        assert entry["history"][0]["ok"] is True and entry["history"][0]["exit_code"] is None
+        assert entry["mean_return"] == pytest.approx(sum(evaluation["seeds"][0]["returns"]) / 2)
+        assert (run.folder / "result.json").exists()
+    assert report.launched == 2 and not report.failed
+    assert state["spec"]["steps"] == 300 and state["backend"] == "local"
+    # Both seeds, merged for `leaderboard submit`; a tiny sweep says why it is no submission.
+    merged = json.loads((out / "submission" / "sac-source" / TASK / "evaluation.json").read_text())
+    assert [s["seed"] for s in merged["seeds"]] == [0, 1]
+    text = "\n".join(summary_lines(report))
+    assert "2/2 runs done, 0 failed" in text and "not a leaderboard submission" in text
+    assert "not at a protocol budget" in text and "not the protocol's core suite" in text
+
+
+def test_running_the_same_sweep_again_launches_nothing(finished_sweep, monkeypatch):
+    out = finished_sweep.spec.out
+    before = {run.run_id: (run.folder / "evaluation.json").stat().st_mtime_ns for run in finished_sweep.runs}
+    logs = {run.run_id: run.log.read_text() for run in finished_sweep.runs}
+
+    def no_subprocess(*args, **kwargs):
+        raise AssertionError(f"a subprocess was started: {args}")
+
+    monkeypatch.setattr("offdyn_bench.sweep.execute.subprocess.Popen", no_subprocess)
+    lines = []
+    again = run_sweep(finished_sweep.spec, workers=2, echo=lines.append)
+    assert again.launched == 0 and not again.failed
+    assert lines == [f"sweep: 2 runs under {out} (2 already evaluated, 0 to run)"]
+    for run in again.runs:
+        assert (run.folder / "evaluation.json").stat().st_mtime_ns == before[run.run_id]
+        assert run.log.read_text() == logs[run.run_id]
+        assert again.records[run.run_id].attempts == 1 and again.records[run.run_id].status == "done"
+
+
+def test_dry_run_marks_finished_runs(finished_sweep, tmp_path, write_spec):
+    spec = finished_sweep.spec.to_dict()
+    spec_path = write_spec(tmp_path / "spec.json", {key: spec[key] for key in (
+        "methods", "tasks", "seeds", "track", "steps", "out", "evaluation_episodes", "training", "overrides")})
+    result = runner.invoke(app, ["sweep", str(spec_path), "--dry-run"])
+    assert result.exit_code == 0, result.output
+    assert f"sac-source/{TASK}/seed-0 (done)" in result.output
+
+
+def test_a_failing_run_is_retried_exactly_max_retries_times_and_reported(tmp_path, tiny_spec, write_spec,
+                                                                         attempt_headers):
+    out = tmp_path / "out"
+    spec_path = write_spec(tmp_path / "spec.json", tiny_spec(out, max_retries=2))
+    # A folder that holds something else: `train` refuses it on every attempt (exit code 2).
+    blocked = out / "runs" / "sac-source" / TASK / "seed-1"
+    blocked.mkdir(parents=True)
+    (blocked / "notes.txt").write_text("not a run")
+    result = runner.invoke(app, ["sweep", str(spec_path), "--workers", "2", "--quiet"])
+    assert result.exit_code == 1, result.output
+    state = _state(out)
+    failed = state["runs"][f"sac-source/{TASK}/seed-1"]
+    assert failed["status"] == "failed" and failed["attempts"] == 3  # the first attempt and 2 retries
+    assert [a["exit_code"] for a in failed["history"]] == [2, 2, 2]
+    assert "is not empty and holds no training run" in failed["error"]
+    log = out / "logs" / "sac-source" / TASK / "seed-1.log"
+    assert attempt_headers(log) == 3 and str(log) in failed["error"]
+    assert state["runs"][f"sac-source/{TASK}/seed-0"]["status"] == "done"
+    assert (out / "runs" / "sac-source" / TASK / "seed-0" / "evaluation.json").exists()
+    assert f"failed: sac-source/{TASK}/seed-1 after 3 attempt(s)" in result.output
+    assert f"(log: {log})" in result.output and "1/2 runs done, 1 failed" in result.output
+    # A method with a failed run gets no merged evaluations.
+    assert "sac-source: not every run finished" in result.output and not (out / "submission").exists()
+
+
+def _train_process_of(folder: Path) -> int | None:
+    """The pid of the `train` subprocess writing into ``folder`` (Linux: read from /proc)."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            args = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"train" in args and str(folder).encode() in args:
+            return int(entry.name)
+    return None
+
+
+def _wait_for(condition, timeout: float = 240.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "timed out waiting"
+        time.sleep(0.02)
+
+
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds the train subprocess through /proc")
+def test_a_train_subprocess_killed_mid_run_is_retried_and_resumes(tmp_path, tiny_spec, attempt_headers):
+    spec = parse_spec(tiny_spec(tmp_path / "out", steps=1000, seeds=2,
+                                training={"eval_episodes": 1, "checkpoint_every": 100, "eval_every": 250}))
+    victim = expand(spec)[0]
+    outcome = {}
+    sweep = threading.Thread(target=lambda: outcome.setdefault("report", run_sweep(spec, workers=2, echo=None)))
+    sweep.start()
+    _wait_for(lambda: any((victim.folder / "checkpoints").glob("step_*")) and _train_process_of(victim.folder))
+    os.kill(_train_process_of(victim.folder), signal.SIGKILL)
+    sweep.join(timeout=300)
+    report = outcome["report"]
+    record = report.records[victim.run_id]
+    assert record.status == "done" and record.attempts == 2
+    assert record.history[0]["exit_code"] == -signal.SIGKILL and "killed by signal 9" in record.history[0]["error"]
+    assert "=== resuming: " in victim.log.read_text() and attempt_headers(victim.log) == 2
+    other = report.runs[1]
+    assert report.records[other.run_id].status == "done" and report.records[other.run_id].attempts == 1
+    assert not report.failed
+
+
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds the train subprocess through /proc")
+def test_a_killed_sweep_keeps_finished_runs_and_resumes_the_rest(tmp_path, tiny_spec, write_spec, attempt_headers):
+    spec_path = write_spec(tmp_path / "spec.json", tiny_spec(
+        tmp_path / "out", steps=1000, training={"eval_episodes": 1, "checkpoint_every": 100, "eval_every": 250}))
+    first, second = expand(parse_spec(json.loads(spec_path.read_text())))
+    # One run at a time, the whole sweep (driver and its runs) in a process group of its own.
+    sweep = subprocess.Popen([sys.executable, "-m", "offdyn_bench", "sweep", str(spec_path), "--workers", "1",
+                              "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                             start_new_session=True)
+    try:
+        _wait_for(lambda: (first.folder / "evaluation.json").exists()
+                  and any((second.folder / "checkpoints").glob("step_*")))
+    finally:
+        os.killpg(sweep.pid, signal.SIGKILL)
+        sweep.wait()
+    finished_at = (first.folder / "evaluation.json").stat().st_mtime_ns
+    assert not (second.folder / "result.json").exists()
+
+    report = run_sweep(parse_spec(json.loads(spec_path.read_text())), workers=1, echo=None)
+    assert report.launched == 1 and not report.failed
+    assert (first.folder / "evaluation.json").stat().st_mtime_ns == finished_at
+    assert report.records[first.run_id].attempts == 1 and attempt_headers(first.log) == 1
+    assert report.records[second.run_id].status == "done" and attempt_headers(second.log) == 2
+    assert "=== resuming: " in second.log.read_text()
