@@ -195,99 +195,108 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
     runs = expand(spec)  # every refusal before anything is written
     _check_out(spec.out)
     say = echo or (lambda _line: None)
-    with _sweep_lock(spec.out):
-        state_path = spec.out / STATE_FILE
-        stored = _read_state(state_path).get("runs") or {}
-        records = {run.run_id: RunRecord.of(run, stored.get(run.run_id)) for run in runs}
-        others = {key: value for key, value in stored.items() if key not in records}
+    # The backend before anything is written: a Ray cluster that could never place a run is
+    # refused with nothing changed. None when every run is evaluated already.
+    engine: Backend | None = None
+    if any(finished_evaluation(run) is None for run in runs):
+        engine = make_backend(backend, spec, workers)
+    try:
+        with _sweep_lock(spec.out):
+            state_path = spec.out / STATE_FILE
+            stored = _read_state(state_path).get("runs") or {}
+            records = {run.run_id: RunRecord.of(run, stored.get(run.run_id)) for run in runs}
+            others = {key: value for key, value in stored.items() if key not in records}
 
-        def save() -> None:
-            write_json_atomic(state_path, {
-                "format": STATE_FORMAT, "format_version": 1, "spec": spec.to_dict(), "backend": backend,
-                "runs": {key: dataclasses.asdict(record) for key, record in records.items()} | others,
-            })
+            def save() -> None:
+                write_json_atomic(state_path, {
+                    "format": STATE_FORMAT, "format_version": 1, "spec": spec.to_dict(), "backend": backend,
+                    "runs": {key: dataclasses.asdict(record) for key, record in records.items()} | others,
+                })
 
-        pending = []
-        for run in runs:
-            record = records[run.run_id]
-            evaluation = finished_evaluation(run)
-            if evaluation is not None:
-                record.status, record.error = "done", None
-                returns = [float(x) for seed in evaluation["seeds"] for x in seed["returns"]]
-                record.mean_return = sum(returns) / len(returns)
-            else:
-                record.status = "pending"
-                pending.append(run)
-        save()
-        skipped = len(runs) - len(pending)
-        say(f"sweep: {len(runs)} runs under {spec.out} ({skipped} already evaluated, {len(pending)} to run)")
+            pending = []
+            for run in runs:
+                record = records[run.run_id]
+                evaluation = finished_evaluation(run)
+                if evaluation is not None:
+                    record.status, record.error = "done", None
+                    returns = [float(x) for seed in evaluation["seeds"] for x in seed["returns"]]
+                    record.mean_return = sum(returns) / len(returns)
+                else:
+                    record.status = "pending"
+                    pending.append(run)
+            save()
+            skipped = len(runs) - len(pending)
+            say(f"sweep: {len(runs)} runs under {spec.out} ({skipped} already evaluated, {len(pending)} to run)")
 
-        launched = 0
-        if pending:
-            for dataset in official_datasets(pending):
-                from offdyn_bench.datasets.ensure import ensure_dataset
+            launched = 0
+            if pending:
+                for dataset in official_datasets(pending):
+                    from offdyn_bench.datasets.ensure import ensure_dataset
 
-                ensure_dataset(dataset, progress=False, echo=lambda line: say(f"dataset: {line}"))
-            engine = make_backend(backend, spec, workers)
-            progress = _Progress(echo, len(runs))
-            progress.walls = [records[run.run_id].wall_time_s for run in runs
-                              if records[run.run_id].status == "done" and records[run.run_id].wall_time_s > 0]
-            tries_left = {run.run_id: 1 + spec.max_retries for run in pending}
-            in_flight: dict[Any, Run] = {}
-            try:
-                while pending or in_flight:
-                    capacity = engine.capacity
-                    while pending and len(in_flight) < capacity:
-                        run = pending.pop(0)
-                        record = records[run.run_id]
-                        record.status = "running"
-                        in_flight[engine.submit(run, record.attempts + 1)] = run
-                        launched += 1
+                    ensure_dataset(dataset, progress=False, echo=lambda line: say(f"dataset: {line}"))
+                if engine is None:
+                    engine = make_backend(backend, spec, workers)
+                progress = _Progress(echo, len(runs))
+                progress.walls = [records[run.run_id].wall_time_s for run in runs
+                                  if records[run.run_id].status == "done" and records[run.run_id].wall_time_s > 0]
+                tries_left = {run.run_id: 1 + spec.max_retries for run in pending}
+                in_flight: dict[Any, Run] = {}
+                try:
+                    while pending or in_flight:
+                        capacity = engine.capacity
+                        while pending and len(in_flight) < capacity:
+                            run = pending.pop(0)
+                            record = records[run.run_id]
+                            record.status = "running"
+                            in_flight[engine.submit(run, record.attempts + 1)] = run
+                            launched += 1
+                        save()
+                        progress.show(records, capacity)
+                        for handle in engine.wait(list(in_flight), timeout=min(PROGRESS_EVERY_S, 5.0)):
+                            run = in_flight.pop(handle)
+                            record = records[run.run_id]
+                            outcome = engine.outcome(handle, run)
+                            record.add(outcome)
+                            tries_left[run.run_id] -= 1
+                            if outcome.ok:
+                                record.status, record.error, record.mean_return = "done", None, outcome.mean_return
+                                progress.walls.append(record.wall_time_s)
+                            elif tries_left[run.run_id] > 0:
+                                record.status, record.error = "pending", outcome.error
+                                say(f"sweep: {run.run_id} attempt {record.attempts} failed ({outcome.error}); "
+                                    f"retrying ({tries_left[run.run_id]} attempt(s) left)")
+                                pending.append(run)
+                            else:
+                                record.status, record.error = "failed", outcome.error
+                                say(f"sweep: {run.run_id} failed after {record.attempts} attempt(s): {outcome.error}")
+                        save()
+                finally:
+                    for run in in_flight.values():
+                        # Interrupted: the next sweep runs it again, resuming from its checkpoints.
+                        records[run.run_id].status = "pending"
                     save()
-                    progress.show(records, capacity)
-                    for handle in engine.wait(list(in_flight), timeout=min(PROGRESS_EVERY_S, 5.0)):
-                        run = in_flight.pop(handle)
-                        record = records[run.run_id]
-                        outcome = engine.outcome(handle, run)
-                        record.add(outcome)
-                        tries_left[run.run_id] -= 1
-                        if outcome.ok:
-                            record.status, record.error, record.mean_return = "done", None, outcome.mean_return
-                            progress.walls.append(record.wall_time_s)
-                        elif tries_left[run.run_id] > 0:
-                            record.status, record.error = "pending", outcome.error
-                            say(f"sweep: {run.run_id} attempt {record.attempts} failed ({outcome.error}); "
-                                f"retrying ({tries_left[run.run_id]} attempt(s) left)")
-                            pending.append(run)
-                        else:
-                            record.status, record.error = "failed", outcome.error
-                            say(f"sweep: {run.run_id} failed after {record.attempts} attempt(s): {outcome.error}")
-                    save()
-            finally:
-                for run in in_flight.values():
-                    # Interrupted: the next sweep runs it again, resuming from its checkpoints.
-                    records[run.run_id].status = "pending"
-                save()
-                engine.close()
-            progress.show(records, 0, force=True)
+                progress.show(records, 0, force=True)
 
-        submissions: dict[str, list[str]] = {}
-        submitted: dict[str, Path] = {}
-        from offdyn_bench.sweep.submission import leaderboard_blockers, submit as submit_method, \
-            write_submission_folder
+            submissions: dict[str, list[str]] = {}
+            submitted: dict[str, Path] = {}
+            from offdyn_bench.sweep.submission import leaderboard_blockers, submit as submit_method, \
+                write_submission_folder
 
-        for method in spec.methods:
-            method_runs = [run for run in runs if run.method == method]
-            if any(records[run.run_id].status != "done" for run in method_runs):
-                continue
-            folder = write_submission_folder(spec, method, method_runs)
-            merged = [json.loads(path.read_text()) for path in sorted(folder.glob("*/evaluation.json"))]
-            reasons = [reason for record in merged for reason in leaderboard_blockers(spec, record)]
-            submissions[method] = list(dict.fromkeys(reasons))
-            if submit and not submissions[method]:
-                submitted[method] = submit_method(spec, method, description)
-        return SweepReport(spec=spec, runs=runs, records=records, launched=launched, submissions=submissions,
-                           submitted=submitted, state_path=state_path)
+            for method in spec.methods:
+                method_runs = [run for run in runs if run.method == method]
+                if any(records[run.run_id].status != "done" for run in method_runs):
+                    continue
+                folder = write_submission_folder(spec, method, method_runs)
+                merged = [json.loads(path.read_text()) for path in sorted(folder.glob("*/evaluation.json"))]
+                reasons = [reason for record in merged for reason in leaderboard_blockers(spec, record)]
+                submissions[method] = list(dict.fromkeys(reasons))
+                if submit and not submissions[method]:
+                    submitted[method] = submit_method(spec, method, description)
+            return SweepReport(spec=spec, runs=runs, records=records, launched=launched, submissions=submissions,
+                               submitted=submitted, state_path=state_path)
+    finally:
+        if engine is not None:
+            engine.close()
 
 
 def summary_lines(report: SweepReport) -> list[str]:

@@ -172,3 +172,45 @@ def test_a_killed_sweep_keeps_finished_runs_and_resumes_the_rest(tmp_path, tiny_
     assert report.records[first.run_id].attempts == 1 and attempt_headers(first.log) == 1
     assert report.records[second.run_id].status == "done" and attempt_headers(second.log) == 2
     assert "=== resuming: " in second.log.read_text()
+
+
+def test_merged_evaluation_holds_each_runs_returns_and_curves(finished_sweep):
+    from offdyn_bench.sweep.submission import SUBMISSION_DIR
+
+    out = finished_sweep.spec.out
+    runs = finished_sweep.runs
+    records = [json.loads((run.folder / "evaluation.json").read_text()) for run in runs]
+    merged = json.loads((out / SUBMISSION_DIR / "sac-source" / TASK / "evaluation.json").read_text())
+    assert merged["seeds"] == records[0]["seeds"] + records[1]["seeds"]
+    assert merged["agent"]["policy_sha256"] == {**records[0]["agent"]["policy_sha256"],
+                                                **records[1]["agent"]["policy_sha256"]}
+    for field in ("task", "task_version", "target_env_id", "episode_seeds", "versions", "track", "method", "steps"):
+        assert merged[field] == records[0][field]
+    assert merged["protocol_conformant"] is False and merged["notes"] == records[0]["notes"]
+    assert merged["merged_from"] == [str(run.folder / "evaluation.json") for run in runs]
+    curves = [[json.loads(line) for line in (run.folder / "metrics.jsonl").read_text().splitlines()] for run in runs]
+    merged_curve = [json.loads(line) for line in
+                    (out / SUBMISSION_DIR / "sac-source" / TASK / "metrics.jsonl").read_text().splitlines()]
+    assert [entry["step"] for entry in merged_curve] == [entry["step"] for entry in curves[0]]
+    assert [entry["target_return"] for entry in merged_curve] == [
+        a["target_return"] + b["target_return"] for a, b in zip(*curves)]
+    # The leaderboard reads the merged record as an evaluation; a tiny sweep's is refused as no protocol result.
+    from leaderboard.assemble import assemble_submission
+    from leaderboard.submission import SubmissionError
+
+    with pytest.raises(SubmissionError, match="is not a protocol result: trained for 300 steps"):
+        assemble_submission(out / SUBMISSION_DIR / "sac-source", method="sac-source")
+
+
+def test_evaluations_made_differently_are_not_merged(finished_sweep):
+    from offdyn_bench.errors import OffdynError
+    from offdyn_bench.sweep.submission import merge_evaluations
+
+    runs = finished_sweep.runs
+    records = [json.loads((run.folder / "evaluation.json").read_text()) for run in runs]
+    sources = [run.folder / "evaluation.json" for run in runs]
+    other = dict(records[1], versions=dict(records[1]["versions"], mujoco="3.16.0"))
+    with pytest.raises(OffdynError, match=f"the evaluations of sac-source on {TASK} disagree on versions"):
+        merge_evaluations([records[0], other], sources)
+    with pytest.raises(OffdynError, match="hold a training seed twice"):
+        merge_evaluations([records[0], records[0]], sources)
