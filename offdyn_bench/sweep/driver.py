@@ -324,11 +324,11 @@ def summary_lines(report: SweepReport) -> list[str]:
             continue
         folder = report.spec.out / SUBMISSION_DIR / method
         reasons = report.submissions[method]
-        if method in report.submitted:
-            lines.append(f"{method}: wrote the submission {report.submitted[method]} (validated)")
-        elif reasons:
+        if reasons:
             lines.append(f"{method}: merged evaluations in {folder}; not a leaderboard submission: "
                          + "; ".join(reasons))
-        else:
-            lines.append(f"{method}: submit with: {submit_command(report.spec, method)}")
+            continue
+        lines.append(f"{method}: submit with: {submit_command(report.spec, method)}")
+        if method in report.submitted:
+            lines.append(f"{method}: wrote the submission {report.submitted[method]} (validated)")
     return lines
