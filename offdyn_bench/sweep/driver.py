@@ -50,7 +50,7 @@ class RunRecord:
     log: str
     status: str = "pending"
     attempts: int = 0
-    """Attempts over every invocation of the sweep."""
+    """Attempts started, over every invocation of the sweep."""
     wall_time_s: float = 0.0
     cpu_time_s: float = 0.0
     mean_return: float | None = None
@@ -64,14 +64,16 @@ class RunRecord:
         if isinstance(stored, dict):
             history = stored.get("history")
             record.history = list(history) if isinstance(history, list) else []
-            record.attempts = len(record.history)
+            # Attempts are counted when they start: one cut short by a killed driver has no outcome.
+            stored_attempts = stored.get("attempts")
+            record.attempts = max(len(record.history),
+                                  stored_attempts if isinstance(stored_attempts, int) else 0)
             record.wall_time_s = float(sum(a.get("wall_time_s") or 0.0 for a in record.history if isinstance(a, dict)))
             record.cpu_time_s = float(sum(a.get("cpu_time_s") or 0.0 for a in record.history if isinstance(a, dict)))
         return record
 
-    def add(self, outcome: AttemptOutcome) -> None:
-        self.attempts += 1
-        self.history.append({"attempt": self.attempts, **outcome.to_dict()})
+    def add(self, attempt: int, outcome: AttemptOutcome) -> None:
+        self.history.append({"attempt": attempt, **outcome.to_dict()})
         self.wall_time_s = round(self.wall_time_s + outcome.wall_time_s, 3)
         self.cpu_time_s = round(self.cpu_time_s + outcome.cpu_time_s, 3)
 
@@ -248,7 +250,8 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                             run = pending.pop(0)
                             record = records[run.run_id]
                             record.status = "running"
-                            in_flight[engine.submit(run, record.attempts + 1)] = run
+                            record.attempts += 1
+                            in_flight[engine.submit(run, record.attempts)] = run
                             launched += 1
                         save()
                         progress.show(records, capacity)
@@ -256,7 +259,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                             run = in_flight.pop(handle)
                             record = records[run.run_id]
                             outcome = engine.outcome(handle, run)
-                            record.add(outcome)
+                            record.add(record.attempts, outcome)
                             tries_left[run.run_id] -= 1
                             if outcome.ok:
                                 record.status, record.error, record.mean_return = "done", None, outcome.mean_return

@@ -4,12 +4,15 @@
 Subprocesses keep a crash, a kill or a leak of one run out of the sweep, and they are the very
 commands a person would type. A run folder that already holds ``result.json`` is only evaluated
 (``train`` refuses a finished folder); one with checkpoints resumes from them (``train`` does it).
-Both commands append to the run's log, under a header naming the attempt.
+Both commands append to the run's log, under a header naming the attempt. A folder another process
+is still training in (a ``train`` orphaned by a killed worker) is waited for, not failed on.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
+import fcntl
 import json
 import os
 import shlex
@@ -20,6 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from baselines.run_folder import LOCK_FILE
 from offdyn_bench.sweep.runs import CONFIG_FILE, EVALUATION_FILE, RESULT_FILE, Run, finished_evaluation
 
 
@@ -68,6 +72,7 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
                       + (f" ({error})" if error else "") + "\n")
             return result
 
+        _wait_for_other_trainer(run, log)
         if (run.folder / RESULT_FILE).exists():
             mismatch = _finished_run_mismatch(run)
             if mismatch is not None:
@@ -91,6 +96,28 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
                                                  f"{run.evaluation_episodes} episodes of seeds {list(run.seeds)}")
         returns = [float(x) for seed in record["seeds"] for x in seed["returns"]]
         return outcome(True, "check", mean_return=sum(returns) / len(returns))
+
+
+def _wait_for_other_trainer(run: Run, log: Any) -> None:
+    """Wait while another process trains in ``run.folder`` (it holds the folder's lock): a train
+    left running by a killed worker or a killed sweep driver. It finishes the run (or dies), and
+    this attempt then evaluates (or resumes) it, instead of failing on the lock every retry."""
+    try:
+        fd = os.open(run.folder / LOCK_FILE, os.O_RDWR)
+    except OSError:
+        return  # no lock file: nobody has trained here yet
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                return
+            log.write(f"=== waiting: another process is training in {run.folder} (its {LOCK_FILE} is locked)\n")
+            log.flush()
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            log.write("=== the other process has let go of the folder\n")
+    finally:
+        os.close(fd)  # releases the lock for the train command
 
 
 def _run_logged(command: list[str], log: Any) -> tuple[int, float]:
