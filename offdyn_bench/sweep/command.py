@@ -7,7 +7,7 @@ backends load when the command runs.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -20,9 +20,9 @@ def sweep_command(
                                                                    "out, retries and resources.")],
     backend: Annotated[str, typer.Option(help="local (a pool of runs on this machine) or ray (one Ray task per "
                                               "run; ray_address in the spec, or a local Ray instance).")] = "local",
-    workers: Annotated[Optional[int], typer.Option(help="Runs at once (local; default: CPUs / cpus_per_run), or "
+    workers: Annotated[int | None, typer.Option(help="Runs at once (local; default: CPUs / cpus_per_run), or "
                                                         "the CPUs of a local Ray instance's runs.")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Output folder (replaces the spec's out).")] = None,
+    out: Annotated[Path | None, typer.Option(help="Output folder (replaces the spec's out).")] = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="List the runs and their commands; run nothing.")] = False,
     submit: Annotated[bool, typer.Option("--submit", help="When every run of a method is done and the sweep is a "
                                                           "protocol result (core suite, budget, seeds), write its "

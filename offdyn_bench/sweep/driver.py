@@ -140,7 +140,7 @@ def _read_state(path: Path) -> dict[str, Any]:
 def format_duration(seconds: float | None) -> str:
     if seconds is None or not math.isfinite(seconds):
         return "?"
-    seconds = int(round(seconds))
+    seconds = round(seconds)
     hours, rest = divmod(seconds, 3600)
     minutes, secs = divmod(rest, 60)
     return f"{hours}h{minutes:02d}m" if hours else (f"{minutes}m{secs:02d}s" if minutes else f"{secs}s")
@@ -282,8 +282,8 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
 
             submissions: dict[str, list[str]] = {}
             submitted: dict[str, Path] = {}
-            from offdyn_bench.sweep.submission import leaderboard_blockers, submit as submit_method, \
-                write_submission_folder
+            from offdyn_bench.sweep.submission import leaderboard_blockers, write_submission_folder
+            from offdyn_bench.sweep.submission import submit as submit_method
 
             for method in spec.methods:
                 method_runs = [run for run in runs if run.method == method]

@@ -36,8 +36,8 @@ def _refused(tmp_path, spec, *, suffix=".json", text=None):
     ({"tasks": ["invertedpendulum-gravity-3.1"]}, "tasks: unknown task"),
     ({"track": "offline"}, "track: unknown track 'offline'"),
     ({"steps": None, "budget": "medium"}, "budget: unknown budget 'medium'"),
-    ({"overrides": {"sac-source": {"batch_size": 8}}}, "overrides.sac-source: unknown setting of sac-source "
-                                                        "'batch_size'; closest valid names: 'sac.batch_size'"),
+    ({"overrides": {"sac-source": {"batch_size": 8}}}, ("overrides.sac-source: unknown setting of sac-source "
+                                                        "'batch_size'; closest valid names: 'sac.batch_size'")),
     ({"overrides": {"sac-source": {"sac.batch_size": -3}}}, "overrides.sac-source: "),
 ])
 def test_names_the_registry_and_protocol_refuse_are_one_line_each(tmp_path, tiny_spec, write_spec, changes, message):
@@ -66,8 +66,8 @@ def test_bad_seeds(tmp_path, tiny_spec, write_spec, seeds, expected):
 
 @pytest.mark.parametrize("changes, expected", [
     ({"seed": 3}, "unknown key 'seed' (did you mean 'seeds'?); valid keys: methods, tasks, seeds"),
-    ({"training": {"eval_every": 10, "checkpoint": 5}}, "training: unknown key 'checkpoint'; valid keys: "
-                                                         "eval_every, eval_episodes, checkpoint_every"),
+    ({"training": {"eval_every": 10, "checkpoint": 5}}, ("training: unknown key 'checkpoint'; valid keys: "
+                                                         "eval_every, eval_episodes, checkpoint_every")),
     ({"budget": "lite"}, "give exactly one of budget (lite|full, the protocol's) and steps"),
     ({"steps": None}, "give exactly one of budget"),
     ({"steps": 0}, "steps: got 0; expected an integer >= 1"),
