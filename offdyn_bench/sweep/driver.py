@@ -28,8 +28,8 @@ from baselines.run_folder import write_json_atomic
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, default_workers
 from offdyn_bench.sweep.execute import AttemptOutcome
-from offdyn_bench.sweep.runs import Run, expand, finished_evaluation, official_datasets
-from offdyn_bench.sweep.spec import SweepSpec
+from offdyn_bench.sweep.runs import Run, expand, finished_evaluation, official_datasets, settings_conflict
+from offdyn_bench.sweep.spec import SpecError, SweepSpec
 
 STATE_FILE = "sweep.json"
 STATE_FORMAT = "offdyn-bench/sweep-state"
@@ -196,6 +196,12 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
         raise OffdynError(f"--workers {workers}: expected an integer >= 1")
     runs = expand(spec)  # every refusal before anything is written
     _check_out(spec.out)
+    conflicts = [(run, why) for run in runs if (why := settings_conflict(run)) is not None]
+    if conflicts:
+        shown = "; ".join(f"{run.run_id} ({why})" for run, why in conflicts[:3])
+        more = f"; and {len(conflicts) - 3} more" if len(conflicts) > 3 else ""
+        raise SpecError(f"{spec.out} holds {len(conflicts)} run(s) made with other settings than the spec's: "
+                        f"{shown}{more}; use another out, or the settings they were made with")
     say = echo or (lambda _line: None)
     # The backend before anything is written: a Ray cluster that could never place a run is
     # refused with nothing changed. None when every run is evaluated already.

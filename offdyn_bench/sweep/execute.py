@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import errno
 import fcntl
-import json
 import os
 import shlex
 import socket
@@ -24,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from baselines.run_folder import LOCK_FILE
-from offdyn_bench.sweep.runs import CONFIG_FILE, EVALUATION_FILE, RESULT_FILE, Run, finished_evaluation
+from offdyn_bench.sweep.runs import EVALUATION_FILE, RESULT_FILE, Run, finished_evaluation, settings_conflict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,16 +149,8 @@ def _last_error_line(log: Path) -> str:
 
 
 def _finished_run_mismatch(run: Run) -> str | None:
-    """Why the finished run in ``run.folder`` is not this run (another method, task, seeds or
-    step count), or None."""
-    try:
-        config = json.loads((run.folder / CONFIG_FILE).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        return f"{run.folder / CONFIG_FILE} cannot be read ({error}); move the folder away to retrain"
-    expected = {"algo": run.method, "task": run.task, "seeds": list(run.seeds), "steps": run.steps}
-    differs = [key for key, value in expected.items() if config.get(key) != value] if isinstance(config, dict) \
-        else list(expected)
-    if differs:
-        return (f"{run.folder} holds a finished run with other settings (differs in: {', '.join(differs)}); "
-                "move it away or change the sweep's out")
-    return None
+    """Why the finished run in ``run.folder`` is not this run, or None."""
+    conflict = settings_conflict(run)
+    if conflict is None:
+        return None
+    return f"{run.folder} holds a finished run with other settings ({conflict}); move it away or change out"

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,9 @@ class Run:
     evaluation_episodes: int
     official_dataset: str | None = None
     """The track's official dataset the run trains on (None: no dataset, or the spec's own)."""
+    settings: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    """What ``train`` records in ``config.json`` that decides the result (algo, task, steps,
+    seeds, dataset, the full method config): a folder holding other settings is another run."""
 
     @property
     def run_id(self) -> str:
@@ -75,7 +78,7 @@ def steps_of(spec: SweepSpec) -> int:
 
 def expand(spec: SweepSpec) -> list[Run]:
     """The spec's runs, in method, task, seed order; a :class:`SpecError` listing every refusal."""
-    from baselines.algorithms import apply_overrides, get_algorithm
+    from baselines.algorithms import apply_overrides, config_to_dict, get_algorithm
     from offdyn_bench.errors import OffdynError
     from offdyn_bench.protocol import get_budget, get_track, official_dataset
     from offdyn_bench.protocol.definition import check_method_on_track
@@ -92,6 +95,7 @@ def expand(spec: SweepSpec) -> list[Run]:
         except OffdynError as error:
             raise SpecError(f"{where}: budget: {error}") from None
     needs_dataset: dict[str, bool] = {}
+    configs: dict[str, dict[str, Any]] = {}
     for method in spec.methods:
         try:
             algorithm = get_algorithm(method)
@@ -103,6 +107,7 @@ def expand(spec: SweepSpec) -> list[Run]:
             raise SpecError(f"{where}: overrides.{method}: {error}") from None
         # The trainer's rule (baselines/train.py): DARC with target_data=online takes no dataset.
         needs_dataset[method] = algorithm.needs_dataset and getattr(config, "target_data", "offline") != "online"
+        configs[method] = config_to_dict(config)
     tasks = []
     for task in task_names(spec):
         try:
@@ -133,14 +138,17 @@ def expand(spec: SweepSpec) -> list[Run]:
         for task in tasks:
             for seeds in seed_groups(spec.seeds, spec.seeds_per_run):
                 folder = root / RUNS_DIR / method / task / seed_label(seeds)
+                dataset = official_dataset(task, spec.track) if needs_dataset[method] and spec.dataset is None \
+                    else (spec.dataset if needs_dataset[method] else None)
                 log = root / LOGS_DIR / method / task / f"{seed_label(seeds)}.log"
                 runs.append(Run(method=method, task=task, seeds=seeds, folder=folder, log=log,
                                 train_args=tuple(_train_args(spec, method, task, seeds, folder,
                                                              needs_dataset[method])),
                                 evaluate_args=tuple(_evaluate_args(spec, folder)),
                                 steps=steps, evaluation_episodes=spec.evaluation_episodes,
-                                official_dataset=(official_dataset(task, spec.track)
-                                                  if needs_dataset[method] and spec.dataset is None else None)))
+                                official_dataset=dataset if spec.dataset is None else None,
+                                settings={"algo": method, "task": task, "steps": steps, "seeds": list(seeds),
+                                          "dataset": dataset, "config": configs[method]}))
     return runs
 
 
@@ -201,3 +209,28 @@ def finished_evaluation(run: Run) -> dict[str, Any] | None:
             and all(isinstance(s.get("returns"), list) and len(s["returns"]) == run.evaluation_episodes
                     for s in seeds))
     return record if same else None
+
+
+def settings_conflict(run: Run) -> str | None:
+    """Why ``run.folder`` holds another run than ``run`` (its ``config.json`` records other
+    settings: ``differs in: steps, config.sac.batch_size``), or None (no run there, or this one)."""
+    path = run.folder / CONFIG_FILE
+    if not path.exists():
+        return None
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        return f"{path} cannot be read ({error})"
+    if not isinstance(stored, dict):
+        return f"{path} is not a training run's config.json"
+    differs = []
+    for key, expected in run.settings.items():
+        differs += _differences(key, stored.get(key), expected)
+    return f"differs in: {', '.join(differs)}" if differs else None
+
+
+def _differences(key: str, stored: Any, expected: Any) -> list[str]:
+    if isinstance(stored, dict) and isinstance(expected, dict):
+        return [difference for name in sorted(set(stored) | set(expected))
+                for difference in _differences(f"{key}.{name}", stored.get(name), expected.get(name))]
+    return [] if json.dumps(stored, sort_keys=True) == json.dumps(expected, sort_keys=True) else [key]

@@ -74,7 +74,7 @@ class SweepSpec:
         data = dataclasses.asdict(self)
         data["out"] = str(self.out)
         data["overrides"] = {method: dict(values) for method, values in self.overrides.items()}
-        return data
+        return json.loads(json.dumps(data))  # JSON-ready: tuples become lists
 
 
 _KEYS = ("methods", "tasks", "seeds", "track", "budget", "steps", "out", "seeds_per_run", "device", "dataset",

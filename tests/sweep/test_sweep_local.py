@@ -222,3 +222,21 @@ def test_evaluations_made_differently_are_not_merged(finished_sweep):
         merge_evaluations([records[0], other], sources)
     with pytest.raises(OffdynError, match="hold a training seed twice"):
         merge_evaluations([records[0], records[0]], sources)
+
+
+def test_a_spec_changed_under_finished_runs_is_refused_and_changes_nothing(finished_sweep, tmp_path):
+    import shutil
+
+    from offdyn_bench.sweep import SpecError
+
+    out = tmp_path / "copy"
+    shutil.copytree(finished_sweep.spec.out, out)
+    state_before = (out / STATE_FILE).read_bytes()
+    data = {key: value for key, value in finished_sweep.spec.to_dict().items()
+            if key in ("methods", "tasks", "seeds", "track", "steps", "evaluation_episodes", "training")}
+    changed = parse_spec(data | {"out": str(out), "overrides": {"sac-source": {
+        "sac.hidden_sizes": [32, 32], "sac.batch_size": 16, "random_steps": 40}}})
+    with pytest.raises(SpecError, match=r"holds 2 run\(s\) made with other settings than the spec's: "
+                                        rf"sac-source/{TASK}/seed-0 \(differs in: config\.sac\.batch_size\)"):
+        run_sweep(changed, workers=1, echo=None)
+    assert (out / STATE_FILE).read_bytes() == state_before
