@@ -197,6 +197,8 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
     if dataset is not None and (not isinstance(dataset, str) or not dataset):
         raise fail("dataset", "a dataset for methods that need target data: collect:random:N, an .npz path or a "
                               "Minari id (leave it out for the track's official dataset)")
+    if dataset is not None:
+        dataset = _absolute_dataset(dataset)
     evaluation_episodes = _int_key(data, "evaluation_episodes", 20, 1, 1000, fail)
 
     training_data = data.get("training") or {}
@@ -273,3 +275,15 @@ def _number_key(data: Mapping[str, Any], key: str, default: float, zero_ok: bool
 def _setting_text(value: Any) -> str:
     """A spec value as the text ``--set key=value`` takes (the trainer parses it as JSON)."""
     return value if isinstance(value, str) else json.dumps(value)
+
+
+def _absolute_dataset(dataset: str) -> str:
+    """``dataset`` with its file or run folder made absolute (``collect:<run folder>:N``, an
+    ``.npz`` path), like ``out``: runs execute in other working folders under Ray."""
+    prefix = "collect:"
+    if dataset.startswith(prefix):
+        source, sep, size = dataset[len(prefix):].rpartition(":")
+        if sep and source and source != "random":
+            return f"{prefix}{Path(source).absolute()}:{size}"
+        return dataset
+    return str(Path(dataset).absolute()) if dataset.endswith(".npz") else dataset

@@ -151,3 +151,12 @@ def test_dry_run_lists_runs_and_writes_nothing(tmp_path, tiny_spec, write_spec):
     assert result.exit_code == 0, result.output
     assert f"sac-source/{TASK}/seed-1 (to run)" in result.output and "offdyn-bench train sac-source" in result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_paths_in_the_spec_are_made_absolute_for_workers_in_other_folders(tmp_path, monkeypatch, tiny_spec):
+    monkeypatch.chdir(tmp_path)
+    spec = parse_spec(tiny_spec("out", dataset="collect:runs/behaviour:500"))
+    assert spec.out == tmp_path / "out" and spec.dataset == f"collect:{tmp_path / 'runs' / 'behaviour'}:500"
+    assert parse_spec(tiny_spec("out", dataset="data/target.npz")).dataset == str(tmp_path / "data" / "target.npz")
+    for unchanged in ("collect:random:500", "offdyn/hopper-gravity-0p5/source-policy-v0"):
+        assert parse_spec(tiny_spec("out", dataset=unchanged)).dataset == unchanged
