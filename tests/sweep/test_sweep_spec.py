@@ -160,3 +160,31 @@ def test_paths_in_the_spec_are_made_absolute_for_workers_in_other_folders(tmp_pa
     assert parse_spec(tiny_spec("out", dataset="data/target.npz")).dataset == str(tmp_path / "data" / "target.npz")
     for unchanged in ("collect:random:500", "offdyn/hopper-gravity-0p5/source-policy-v0"):
         assert parse_spec(tiny_spec("out", dataset=unchanged)).dataset == unchanged
+
+
+def test_an_out_that_is_a_file_is_one_line(tmp_path, tiny_spec):
+    (tmp_path / "out").write_text("a file")
+    path = tmp_path / "spec.json"
+    path.write_text(json.dumps(tiny_spec(tmp_path / "out")))
+    result = runner.invoke(app, ["sweep", str(path), "--quiet"])
+    assert result.exit_code == 2 and result.output.strip().count("\n") == 0
+    assert "exists and is not a folder" in result.output and (tmp_path / "out").read_text() == "a file"
+
+
+def test_a_second_sweep_on_the_same_out_stops_at_once(tmp_path, tiny_spec):
+    import fcntl
+    import os
+
+    from offdyn_bench.errors import OffdynError
+    from offdyn_bench.sweep.driver import LOCK_FILE, STATE_FILE, run_sweep
+
+    out = tmp_path / "out"
+    out.mkdir()
+    fd = os.open(out / LOCK_FILE, os.O_RDWR | os.O_CREAT)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        with pytest.raises(OffdynError, match="another sweep is running on .*sweep.lock is locked"):
+            run_sweep(parse_spec(tiny_spec(out)), echo=None)
+    finally:
+        os.close(fd)
+    assert not (out / STATE_FILE).exists() and not (out / "runs").exists()
