@@ -81,7 +81,7 @@ def expand(spec: SweepSpec) -> list[Run]:
     from baselines.algorithms import apply_overrides, config_to_dict, get_algorithm
     from offdyn_bench.errors import OffdynError
     from offdyn_bench.protocol import get_budget, get_track, official_dataset
-    from offdyn_bench.protocol.definition import check_method_on_track
+    from offdyn_bench.protocol.training import resolve_run
     from offdyn_bench.tasks import get_task
 
     where = spec.source
@@ -96,6 +96,7 @@ def expand(spec: SweepSpec) -> list[Run]:
             raise SpecError(f"{where}: budget: {error}") from None
     needs_dataset: dict[str, bool] = {}
     configs: dict[str, dict[str, Any]] = {}
+    target_step_every: dict[str, int | None] = {}
     for method in spec.methods:
         try:
             algorithm = get_algorithm(method)
@@ -108,6 +109,9 @@ def expand(spec: SweepSpec) -> list[Run]:
         # The trainer's rule (baselines/train.py): DARC with target_data=online takes no dataset.
         needs_dataset[method] = algorithm.needs_dataset and getattr(config, "target_data", "offline") != "online"
         configs[method] = config_to_dict(config)
+        # The trainer's rule too: an online method steps the target once per target_step_every steps.
+        target_step_every[method] = (int(config.target_step_every)
+                                     if getattr(config, "target_data", None) == "online" else None)
     tasks = []
     for task in task_names(spec):
         try:
@@ -116,9 +120,14 @@ def expand(spec: SweepSpec) -> list[Run]:
             raise SpecError(f"{where}: tasks: {error}") from None
 
     refused = []
+    steps = steps_of(spec)
     for method in spec.methods:
+        # The trainer's own check (resolve_run): the track must fit the method, and an online
+        # method may not take more target steps than the track allows; no dataset is touched.
         try:
-            check_method_on_track(method, spec.track)
+            resolve_run(method, tasks[0], steps=steps, track=spec.track, budget=None, dataset=None,
+                        needs_dataset=False, target_step_every=target_step_every[method], progress=False,
+                        echo=lambda _line: None)
         except OffdynError as error:
             refused.append(str(error))
     if refused:
@@ -131,7 +140,6 @@ def expand(spec: SweepSpec) -> list[Run]:
             raise SpecError(f"{where}: no official {spec.track} dataset for {', '.join(lacking)}; these methods "
                             "need target data: set dataset (e.g. collect:random:5000) or drop those tasks")
 
-    steps = steps_of(spec)
     root = spec.out
     runs = []
     for method in spec.methods:

@@ -188,3 +188,11 @@ def test_a_second_sweep_on_the_same_out_stops_at_once(tmp_path, tiny_spec):
     finally:
         os.close(fd)
     assert not (out / STATE_FILE).exists() and not (out / "runs").exists()
+
+
+def test_an_online_method_over_the_tracks_target_steps_is_refused_at_expansion(tmp_path, tiny_spec):
+    line = _refused(tmp_path, tiny_spec(tmp_path / "out", methods=["darc-online"], track="online-target",
+                                        overrides={"darc-online": {"target_step_every": 5}}))
+    assert "darc-online would take 60 target steps per seed; the online-target track allows 30" in line
+    line = _refused(tmp_path, tiny_spec(tmp_path / "out", methods=["darc"], overrides={"darc": {"target_data": "online"}}))
+    assert "darc steps the target environment; the offline-target track allows no target interaction" in line
