@@ -133,9 +133,12 @@ def expand(spec: SweepSpec) -> list[Run]:
     if refused:
         raise SpecError(f"{where}: the protocol refuses {len(refused)} method(s) on track {spec.track!r}: "
                         + "; ".join(refused) + "; remove them or run them in a sweep of their own track")
-    if spec.dataset is None:
+    if spec.dataset is None and any(needs_dataset.values()):
+        from offdyn_bench.datasets import read_manifest
+
+        manifest = read_manifest()
         lacking = [f"{method} on {task}" for method in spec.methods if needs_dataset[method] for task in tasks
-                   if not _has_official_dataset(official_dataset, task, spec.track)]
+                   if official_dataset(task, spec.track) not in manifest]
         if lacking:
             raise SpecError(f"{where}: no official {spec.track} dataset for {', '.join(lacking)}; these methods "
                             "need target data: set dataset (e.g. collect:random:5000) or drop those tasks")
@@ -158,13 +161,6 @@ def expand(spec: SweepSpec) -> list[Run]:
                                 settings={"algo": method, "task": task, "steps": steps, "seeds": list(seeds),
                                           "dataset": dataset, "config": configs[method]}))
     return runs
-
-
-def _has_official_dataset(official_dataset: Any, task: str, track: str) -> bool:
-    from offdyn_bench.datasets import read_manifest
-
-    official = official_dataset(task, track)
-    return official is not None and official in read_manifest()
 
 
 def _train_args(spec: SweepSpec, method: str, task: str, seeds: tuple[int, ...], folder: Path,
