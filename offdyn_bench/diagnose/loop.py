@@ -102,6 +102,8 @@ class Errors:
     heldout_per_dimension: tuple[float, ...]
     heldout_trimmed_nrmse: float
     heldout_horizon_nrmse: float | None
+    heldout_trimmed_per_dimension: tuple[float, ...] = ()
+    heldout_rows: int = 0
 
     def to_json(self) -> dict[str, float | None]:
         return {"one_step_nrmse": self.one_step_nrmse, "heldout_one_step_nrmse": self.heldout_one_step_nrmse,
@@ -201,6 +203,8 @@ def _errors(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> Errors:
                   horizon_nrmse=None if horizon is None else horizon.nrmse,
                   heldout_per_dimension=tuple(float(x) for x in summary["heldout"].per_dimension),
                   heldout_trimmed_nrmse=summary["heldout"].trimmed_nrmse,
+                  heldout_trimmed_per_dimension=tuple(float(x) for x in summary["heldout"].trimmed_per_dimension),
+                  heldout_rows=summary["heldout"].rows,
                   heldout_horizon_nrmse=None if heldout_horizon is None else heldout_horizon.nrmse)
 
 
@@ -219,8 +223,20 @@ def _interval_json(candidate: Candidate, low: float, high: float) -> list[Any]:
     return [float(low), float(high)]
 
 
-def _at_floor(heldout_nrmse: float, floor: float, settings: DiagnosisSettings, margin: float) -> bool:
-    return heldout_nrmse <= floor * (1.0 + margin) + settings.floor_tolerance + NUMERICAL_FLOOR
+def _at_floor(errors: Errors, floor: float, floor_dims: np.ndarray, settings: DiagnosisSettings,
+              margin: float) -> bool:
+    """Whether the held-out error (worst 1% of rows left out) is at the noise floor, overall and in
+    every dimension. Per dimension because floors differ: where some sensors are noisy and others
+    are not, the noisy ones dominate the overall figure and would hide a model error that only the
+    quiet dimensions show. Each dimension gets three standard errors of its RMS estimate on top."""
+    if errors.heldout_trimmed_nrmse > floor * (1.0 + margin) + settings.floor_tolerance + NUMERICAL_FLOOR:
+        return False
+    if not errors.heldout_trimmed_per_dimension:
+        return True
+    sampling = 3.0 / np.sqrt(2.0 * max(errors.heldout_rows, 1))
+    tolerance = settings.floor_tolerance * np.sqrt(len(floor_dims)) + NUMERICAL_FLOOR
+    per_dim = np.asarray(errors.heldout_trimmed_per_dimension)
+    return bool(np.all(per_dim <= floor_dims * (1.0 + margin + sampling) + tolerance))
 
 
 def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: DiagnosisSettings | None = None,
@@ -259,7 +275,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     for _ in range(settings.max_effects):
         # Searching on costs a screen; a model already this close to the floor has nothing left
         # that a significance test could find.
-        if _at_floor(current.heldout_trimmed_nrmse, floor, settings, settings.search_margin):
+        if _at_floor(current, floor, floor_dims, settings, settings.search_margin):
             stop_reason = "held-out error reached the noise floor"
             break
         tick = time.perf_counter()
@@ -321,7 +337,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                           refitted=tuple(refitted)))
         current = after
     else:
-        if _at_floor(current.heldout_trimmed_nrmse, floor, settings, settings.search_margin):
+        if _at_floor(current, floor, floor_dims, settings, settings.search_margin):
             stop_reason = "held-out error reached the noise floor"
 
     # Before any noise is added: what the data cannot resolve among the deterministic effects.
@@ -334,7 +350,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
             current = _errors(evaluator, hypothesis)
             identified = _identify(evaluator, hypothesis, chosen, settings.seed)
     clock["validation"] += time.perf_counter() - tick
-    unexplained = not _at_floor(current.heldout_trimmed_nrmse, floor, settings, settings.explained_margin)
+    unexplained = not _at_floor(current, floor, floor_dims, settings, settings.explained_margin)
     tick = time.perf_counter()
     # A residual the state and command predict is a model error: no noise fit may absorb it.
     predictability = residual_predictability(evaluator, hypothesis, seed=settings.seed) if unexplained else None

@@ -40,16 +40,20 @@ class ErrorSummary:
     nrmse: float
     per_dimension: np.ndarray
     trimmed_nrmse: float
+    trimmed_per_dimension: np.ndarray
+    rows: int
 
     @staticmethod
     def of(residual: np.ndarray) -> ErrorSummary:
         if not residual.size:
-            return ErrorSummary(0.0, np.zeros(residual.shape[1]), 0.0)
+            return ErrorSummary(0.0, np.zeros(residual.shape[1]), 0.0, np.zeros(residual.shape[1]), 0)
         per_row = np.mean(residual**2, axis=1)
-        keep = np.sort(per_row)[: max(1, int(np.ceil(0.99 * len(per_row))))]
+        kept = np.argsort(per_row, kind="stable")[: max(1, int(np.ceil(0.99 * len(per_row))))]
         return ErrorSummary(nrmse=float(np.sqrt(np.mean(per_row))),
                             per_dimension=np.sqrt(np.mean(residual**2, axis=0)),
-                            trimmed_nrmse=float(np.sqrt(np.mean(keep))))
+                            trimmed_nrmse=float(np.sqrt(np.mean(per_row[kept]))),
+                            trimmed_per_dimension=np.sqrt(np.mean(residual[kept] ** 2, axis=0)),
+                            rows=len(per_row))
 
 
 def _is_stochastic(effect: Effect) -> bool:
@@ -337,7 +341,7 @@ class ResidualEvaluator:
         implies, with no model involved. A dimension whose two readings agree to numerical
         precision admits no observation effect at all; a bias is a candidate only where the
         discrepancy has a mean (tested across episodes), a delay only where reading an earlier
-        state removes most of it. The floor is the spread of the discrepancy that is left: a
+        state removes significantly more of it than chance would. The floor is the spread of the discrepancy that is left: a
         measurement of the sensors, fixed before any hypothesis is judged, so no hypothesis can
         move it. Without stored states, observation and state cannot be told apart: every
         observation bias stays a candidate, delays are not (the rebuilt state carries the delay),
@@ -352,7 +356,8 @@ class ResidualEvaluator:
         rows = np.flatnonzero(self.usable)
         now = self._discrepancy(rows)
         rms_now = np.sqrt(np.mean(now**2, axis=0))
-        shifted = [np.sqrt(np.mean(self._discrepancy(rows, s) ** 2, axis=0)) for s in DELAY_SHIFTS]
+        # Spreads, not RMS: a constant bias is no delay, whatever a shift does to the mean.
+        shifted = [np.std(self._discrepancy(rows, s), axis=0) for s in DELAY_SHIFTS]
         centred = np.std(now, axis=0)
         floor = centred.copy()
         bias, delay = [], []
@@ -361,9 +366,11 @@ class ResidualEvaluator:
             if rms_now[c] <= AGREEMENT_TOLERANCE:
                 continue  # the sensor reads the state exactly: nothing to explain
             best_shift = min(range(len(DELAY_SHIFTS)), key=lambda i: shifted[i][c])
-            if shifted[best_shift][c] < 0.5 * rms_now[c]:
+            # Reading an earlier state must remove more of the difference than chance would: with
+            # noisy sensors a delay removes only the state's change over a step, a small part.
+            if shifted[best_shift][c] < centred[c] * (1.0 - 3.0 / np.sqrt(len(rows))):
                 delay.append(d)
-                floor[c] = min(floor[c], np.std(self._discrepancy(rows, DELAY_SHIFTS[best_shift])[:, c]))
+                floor[c] = shifted[best_shift][c]
             if _mean_is_significant(now[:, c], episodes):
                 bias.append(d)
         floor = np.maximum(floor, NUMERICAL_FLOOR)
