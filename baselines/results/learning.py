@@ -45,6 +45,8 @@ METHODS: dict[str, tuple[str, dict[str, str]]] = {
     "cql": ("cql", {k: v for k, v in FAST.items() if k != "random_steps"}),
     "h2o": ("h2o", FAST),
     "darc": ("darc", FAST | OFF_DYNAMICS),
+    # The online track: target steps during training (one per ten source steps), no dataset.
+    "darc-online": ("darc-online", FAST | OFF_DYNAMICS),
     # DAP's open choices (issue 9, point 4). "sampled" was the default before issue 9; "mean" is now.
     "dap": ("dap", FAST | OFF_DYNAMICS | {"regularized_actions": "sampled"}),
     "dap-u": ("dap-u", FAST | OFF_DYNAMICS | {"regularized_actions": "sampled"}),
@@ -125,6 +127,18 @@ def summarize(task: str, runs: Path, names: list[str]) -> dict:
             "claims": claims(methods), "command": f"python -m baselines.results.learning --task {task}"}
 
 
+def merged(published: dict, new: dict) -> dict:
+    """``published`` with ``new``'s methods added or replaced; refused unless both measured the same
+    task, steps, seeds and episodes (a table must compare like with like)."""
+    for key in ("task", "steps", "seeds", "eval_episodes_per_seed"):
+        if published.get(key) != new[key]:
+            raise SystemExit(f"error: cannot merge: the published results have {key}={published.get(key)!r}, "
+                             f"these runs {new[key]!r}")
+    methods = {name: entry for name, entry in published["methods"].items() if name not in new["methods"]}
+    methods.update(new["methods"])
+    return {**new, "methods": methods, "claims": claims(methods)}
+
+
 def _returns_by_seed(evaluation: dict) -> dict[str, list[float]]:
     """Per training seed, the per-episode target returns of an ``offdyn-bench evaluate`` record."""
     return {str(entry["seed"]): [float(x) for x in entry["returns"]] for entry in evaluation["seeds"]}
@@ -182,6 +196,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--runs", type=Path, default=Path("runs/learning"))
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated names of METHODS")
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--merge", action="store_true", help="keep the other methods of the published results "
+                        "file (same task, steps and seeds) and add or replace only --methods")
     parser.add_argument("--source-run", type=Path, help="a finished sac-source run of the same robot whose seed-0 "
                         "policy collects the dataset (source training does not depend on the target, so any "
                         "pair of the robot gives the same policy); default: the sac-source run trained here")
@@ -206,6 +222,8 @@ def main(argv: list[str] | None = None) -> None:
         list(pool.map(lambda n: evaluate(args.task, run_folder(runs, n)), names))
     summary = summarize(args.task, runs, names)
     stem = RESULTS / f"learning-{args.task}"
+    if args.merge and stem.with_suffix(".json").exists():
+        summary = merged(json.loads(stem.with_suffix(".json").read_text()), summary)
     stem.with_suffix(".json").write_text(json.dumps(summary, indent=2) + "\n")
     stem.with_suffix(".md").write_text(markdown(summary))
     print(markdown(summary))

@@ -79,7 +79,8 @@ class Candidate:
 
     def effect(self, value: float) -> Effect:
         cls = EFFECT_KINDS[self.kind]
-        return cls(target=self.target, **dict(self.fixed), **{self.field: self.parameter_value(value)})  # type: ignore[call-arg]
+        parameters = {**dict(self.fixed), self.field: self.parameter_value(value)}
+        return cls(target=self.target, **parameters)  # type: ignore[call-arg]
 
     def matches(self, effect: Effect) -> bool:
         """Whether ``effect`` is this candidate's effect at some value."""

@@ -310,7 +310,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
 
         hypothesis = hypothesis + (chosen_fit.candidate.effect(chosen_fit.value),)
         chosen.append((chosen_fit.candidate, chosen_fit.value, chosen_fit.interval, chosen_fit.on_bound))
-        history.setdefault(chosen_fit.candidate.label, []).append(_effect_json(chosen_fit.candidate, chosen_fit.value)["value"])
+        added = chosen_fit.candidate
+        history.setdefault(added.label, []).append(added.parameter_value(chosen_fit.value))
         refitted: list[dict[str, Any]] = []
         if len(chosen) > 1:
             # Effects found earlier were fitted while this one was missing: refit every effect with
@@ -321,7 +322,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                 others = hypothesis[:j] + hypothesis[j + 1:]
                 refit = fit(evaluator, others, candidate, value)
                 chosen[j] = (candidate, refit.value, refit.interval, refit.on_bound)
-                history[candidate.label].append(_effect_json(candidate, refit.value)["value"])
+                history[candidate.label].append(candidate.parameter_value(refit.value))
                 hypothesis = others[:j] + (candidate.effect(refit.value),) + others[j:]
                 refitted.append(_effect_json(candidate, refit.value))
             chosen_fit = Fit(chosen_fit.candidate, chosen[-1][1], chosen[-1][2], chosen[-1][3], chosen_fit.sse)
@@ -330,7 +331,9 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         tick = time.perf_counter()
         after = _errors(evaluator, hypothesis)
         clock["validation"] += time.perf_counter() - tick
-        steps.append(Step(effect=_effect_json(chosen_fit.candidate, chosen_fit.value), interval=tuple(_interval_json(chosen_fit.candidate, *chosen_fit.interval)),
+        step_interval = tuple(_interval_json(chosen_fit.candidate, *chosen_fit.interval))
+        steps.append(Step(effect=_effect_json(chosen_fit.candidate, chosen_fit.value),
+                          interval=step_interval,  # type: ignore[arg-type]
                           on_bound=chosen_fit.on_bound, before=current, after=after,
                           heldout_gain_z=float(min(z_scores[pick], 1e6)), equivalent_alternatives=alternatives,
                           screened=tuple((s.candidate.label, float(s.reduction)) for s in scores[:8]),

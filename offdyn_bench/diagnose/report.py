@@ -72,7 +72,8 @@ def summary_text(diagnosis: Diagnosis) -> str:
             target = "all" if effect["target"] is None else effect["target"]
             qualifier = "".join(f" ({k} {effect[k]})" for k in ("side", "axis") if k in effect)
             low, high = effect["interval"]
-            lines.append(f"| {effect['kind']}{qualifier} on {target} | {_value(effect)} | {_bound(low)}..{_bound(high)} "
+            lines.append(f"| {effect['kind']}{qualifier} on {target} | {_value(effect)} "
+                         f"| {_bound(low)}..{_bound(high)} "
                          f"| {effect.get('interval_method', '')} |")
         lines.append("")
     identified = diagnosis.identifiability
