@@ -21,6 +21,8 @@ def diagnose_command(
     out: Optional[Path] = typer.Option(None, "--out", help="directory for diagnosis.json, report.md and the plot"),
     json_path: Optional[Path] = typer.Option(None, "--json", help="write the JSON result to this file"),
     horizon: int = typer.Option(10, help="H of the H-step open-loop error, in control steps (1 to 1000)"),
+    search_horizon: int = typer.Option(1, help="steps ahead the search compares (1 to 1000): more than 1 for "
+                                               "high-rate data whose one-step change is below the sensor noise"),
     max_effects: int = typer.Option(4, help="add at most this many effects (0 to 20)"),
     seed: int = typer.Option(0, help="seed of the train/held-out split and the subsets"),
 ) -> None:
@@ -31,7 +33,7 @@ def diagnose_command(
     from offdyn_bench.diagnose.report import unwritable_reason
 
     try:
-        settings = DiagnosisSettings(horizon=horizon, max_effects=max_effects, seed=seed)
+        settings = DiagnosisSettings(horizon=horizon, search_horizon=search_horizon, max_effects=max_effects, seed=seed)
     except OffdynError as error:
         raise _fail(str(error)) from None
     for path, directory, option in ((out, True, "--out"), (json_path, False, "--json")):

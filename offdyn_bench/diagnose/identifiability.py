@@ -58,7 +58,7 @@ def _jacobian(evaluator: ResidualEvaluator, hypothesis: Hypothesis, fitted: Sequ
     """Residual ``[rows, dims]`` at the fit and its Jacobian ``[rows, dims, k]`` per probe step,
     by central differences (a forward difference's curvature error would hide an exact symmetry
     behind a singular value of the order of the step)."""
-    base, = evaluator.residuals([hypothesis], subset)
+    base, = evaluator.search_residuals([hypothesis], subset)
     moved_hypotheses, spans = [], []
     for index, candidate, value in fitted:
         half = 0.1 * candidate.probe
@@ -66,7 +66,7 @@ def _jacobian(evaluator: ResidualEvaluator, hypothesis: Hypothesis, fitted: Sequ
         spans.append((up - down) / candidate.probe)
         for moved in (up, down):
             moved_hypotheses.append(hypothesis[:index] + (candidate.effect(moved),) + hypothesis[index + 1:])
-    moved = evaluator.residuals(moved_hypotheses, subset)
+    moved = evaluator.search_residuals(moved_hypotheses, subset)
     columns = [(moved[2 * i] - moved[2 * i + 1]) / spans[i] for i in range(len(fitted))]
     return base, np.stack(columns, axis=2)
 
@@ -80,7 +80,7 @@ def identifiability(evaluator: ResidualEvaluator, hypothesis: Hypothesis,
         return None
     labels = tuple(candidate.label for _, candidate, _ in fitted)
     residual, jacobian = _jacobian(evaluator, hypothesis, fitted, subset)
-    rows = evaluator.subsets[subset]
+    rows = evaluator.search_starts[subset]
     flat_j = jacobian.reshape(-1, len(fitted))
     _, singular, right = np.linalg.svd(flat_j, full_matrices=False)
     top = float(singular[0]) if singular.size else 0.0

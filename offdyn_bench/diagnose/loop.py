@@ -25,6 +25,7 @@ from offdyn_bench.diagnose.data import Transitions, load_transitions
 from offdyn_bench.diagnose.identifiability import Identifiability, identifiability
 from offdyn_bench.diagnose.residual import (
     NUMERICAL_FLOOR,
+    ErrorSummary,
     Hypothesis,
     ResidualEvaluator,
     block_improvement_z,
@@ -53,6 +54,10 @@ class DiagnosisSettings:
 
     horizon: int = 10
     """H of the H-step open-loop error."""
+    search_horizon: int = 1
+    """Steps ahead the search compares (screen, fits, held-out choice, the stop at the floor). One
+    suits most data; at a high control rate with noisy sensors, where one step moves the state less
+    than the noise, a longer horizon lets effects add up above it."""
     max_effects: int = 4
     """At most this many effects are added."""
     fit_top: int = 5
@@ -75,7 +80,7 @@ class DiagnosisSettings:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        integers = {"horizon": (1, MAX_HORIZON), "max_effects": (0, MAX_EFFECTS), "fit_top": (1, 100),
+        integers = {"horizon": (1, MAX_HORIZON), "search_horizon": (1, MAX_HORIZON), "max_effects": (0, MAX_EFFECTS), "fit_top": (1, 100),
                     "screen_rows": (10, 10**6), "fit_rows": (10, 10**6), "seed": (0, 2**32 - 1)}
         for name, (low, high) in integers.items():
             value = getattr(self, name)
@@ -102,8 +107,6 @@ class Errors:
     heldout_per_dimension: tuple[float, ...]
     heldout_trimmed_nrmse: float
     heldout_horizon_nrmse: float | None
-    heldout_trimmed_per_dimension: tuple[float, ...] = ()
-    heldout_rows: int = 0
 
     def to_json(self) -> dict[str, float | None]:
         return {"one_step_nrmse": self.one_step_nrmse, "heldout_one_step_nrmse": self.heldout_one_step_nrmse,
@@ -162,6 +165,7 @@ class Diagnosis:
     observation_check: dict[str, Any] = dataclasses.field(default_factory=dict)
     noise_floor_source: str = ""
     candidates_searched: int = 0
+    search_horizon: int = 1
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -176,6 +180,7 @@ class Diagnosis:
             "noise_floor": self.noise_floor,
             "noise_floor_source": self.noise_floor_source,
             "candidates_searched": self.candidates_searched,
+            "search_horizon": self.search_horizon,
             "observation_channel": self.observation_check,
             "unexplained_residual": self.unexplained_residual,
             "residual_predictability": (None if self.residual_predictability is None
@@ -203,8 +208,6 @@ def _errors(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> Errors:
                   horizon_nrmse=None if horizon is None else horizon.nrmse,
                   heldout_per_dimension=tuple(float(x) for x in summary["heldout"].per_dimension),
                   heldout_trimmed_nrmse=summary["heldout"].trimmed_nrmse,
-                  heldout_trimmed_per_dimension=tuple(float(x) for x in summary["heldout"].trimmed_per_dimension),
-                  heldout_rows=summary["heldout"].rows,
                   heldout_horizon_nrmse=None if heldout_horizon is None else heldout_horizon.nrmse)
 
 
@@ -223,19 +226,25 @@ def _interval_json(candidate: Candidate, low: float, high: float) -> list[Any]:
     return [float(low), float(high)]
 
 
-def _at_floor(errors: Errors, floor: float, floor_dims: np.ndarray, settings: DiagnosisSettings,
+def _search_summary(evaluator: ResidualEvaluator, hypothesis: Hypothesis) -> ErrorSummary:
+    """The held-out error in the search's units (``search_horizon`` steps ahead)."""
+    residual, = evaluator.search_residuals([hypothesis], "heldout")
+    return ErrorSummary.of(residual)
+
+
+def _at_floor(errors: ErrorSummary, floor: float, floor_dims: np.ndarray, settings: DiagnosisSettings,
               margin: float) -> bool:
     """Whether the held-out error (worst 1% of rows left out) is at the noise floor, overall and in
     every dimension. Per dimension because floors differ: where some sensors are noisy and others
     are not, the noisy ones dominate the overall figure and would hide a model error that only the
     quiet dimensions show. Each dimension gets three standard errors of its RMS estimate on top."""
-    if errors.heldout_trimmed_nrmse > floor * (1.0 + margin) + settings.floor_tolerance + NUMERICAL_FLOOR:
+    if errors.trimmed_nrmse > floor * (1.0 + margin) + settings.floor_tolerance + NUMERICAL_FLOOR:
         return False
-    if not errors.heldout_trimmed_per_dimension:
+    if not errors.rows:
         return True
-    sampling = 3.0 / np.sqrt(2.0 * max(errors.heldout_rows, 1))
+    sampling = 3.0 / np.sqrt(2.0 * errors.rows)
     tolerance = settings.floor_tolerance * np.sqrt(len(floor_dims)) + NUMERICAL_FLOOR
-    per_dim = np.asarray(errors.heldout_trimmed_per_dimension)
+    per_dim = np.asarray(errors.trimmed_per_dimension)
     return bool(np.all(per_dim <= floor_dims * (1.0 + margin + sampling) + tolerance))
 
 
@@ -250,7 +259,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     if not isinstance(data, Transitions):
         data = load_transitions(data, nq=source.base_model.nq, nv=source.base_model.nv)
     evaluator = ResidualEvaluator(source, data, horizon=settings.horizon, heldout_fraction=settings.heldout_fraction,
-                                  screen_rows=settings.screen_rows, fit_rows=settings.fit_rows, seed=settings.seed)
+                                  screen_rows=settings.screen_rows, fit_rows=settings.fit_rows, seed=settings.seed,
+                                  search_horizon=settings.search_horizon)
     check = evaluator.observation_check
     # Observation effects only where the stored states show the sensors disagree with the state.
     recorded_qpos = source.qpos_qvel(evaluator.states[evaluator.usable])[:, :source.base_model.nq]
@@ -265,6 +275,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     first = _errors(evaluator, hypothesis)
     # Measured from the data once; no hypothesis judged against it may move it.
     floor, floor_dims = evaluator.noise_floor()
+    search_floor, search_floor_dims = evaluator.search_floor()
     # A residual that a per-step command correction explains points at the action channel.
     share_before = action_channel_share(evaluator, hypothesis).share
     clock["validation"] += time.perf_counter() - tick
@@ -275,7 +286,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     for _ in range(settings.max_effects):
         # Searching on costs a screen; a model already this close to the floor has nothing left
         # that a significance test could find.
-        if _at_floor(current, floor, floor_dims, settings, settings.search_margin):
+        if _at_floor(_search_summary(evaluator, hypothesis), search_floor, search_floor_dims, settings,
+                     settings.search_margin):
             stop_reason = "held-out error reached the noise floor"
             break
         tick = time.perf_counter()
@@ -291,8 +303,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         clock["fits"] += time.perf_counter() - tick
 
         tick = time.perf_counter()
-        base, = evaluator.residuals([hypothesis], "heldout")
-        trials = evaluator.residuals([hypothesis + (f.candidate.effect(f.value),) for f in fits], "heldout")
+        base, = evaluator.search_residuals([hypothesis], "heldout")
+        trials = evaluator.search_residuals([hypothesis + (f.candidate.effect(f.value),) for f in fits], "heldout")
         base_sse = float(np.sum(base**2))
         gains = [(base_sse - float(np.sum(r**2))) / max(base_sse, 1e-300) for r in trials]
         z_scores = [block_improvement_z(base, r) for r in trials]
@@ -340,7 +352,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                           refitted=tuple(refitted)))
         current = after
     else:
-        if _at_floor(current, floor, floor_dims, settings, settings.search_margin):
+        if _at_floor(_search_summary(evaluator, hypothesis), search_floor, search_floor_dims, settings,
+                     settings.search_margin):
             stop_reason = "held-out error reached the noise floor"
 
     # Before any noise is added: what the data cannot resolve among the deterministic effects.
@@ -353,7 +366,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
             current = _errors(evaluator, hypothesis)
             identified = _identify(evaluator, hypothesis, chosen, settings.seed)
     clock["validation"] += time.perf_counter() - tick
-    unexplained = not _at_floor(current, floor, floor_dims, settings, settings.explained_margin)
+    unexplained = not _at_floor(_search_summary(evaluator, hypothesis), search_floor, search_floor_dims, settings,
+                                 settings.explained_margin)
     tick = time.perf_counter()
     # A residual the state and command predict is a model error: no noise fit may absorb it.
     predictability = residual_predictability(evaluator, hypothesis, seed=settings.seed) if unexplained else None
@@ -426,7 +440,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         observation_check={"bias_candidates": [source.observation_map.names[d] for d in check.bias_allowed],
                            "delay_candidates": [source.observation_map.names[d] for d in check.delay_allowed],
                            "largest_discrepancy": check.max_discrepancy},
-        noise_floor_source=check.floor_source, candidates_searched=len(library))
+        noise_floor_source=check.floor_source, candidates_searched=len(library),
+        search_horizon=settings.search_horizon)
 
 
 Chosen = tuple[Candidate, float, tuple[float, float], bool]
@@ -458,8 +473,8 @@ def _fix_gauge(evaluator: ResidualEvaluator, hypothesis: Hypothesis, chosen: lis
             refit = fit(evaluator, others, candidate, value)
             trial_chosen[j] = (candidate, refit.value, refit.interval, refit.on_bound)
             trial = others[:j] + (candidate.effect(refit.value),) + others[j:]
-        before, = evaluator.residuals([hypothesis], "heldout")
-        after, = evaluator.residuals([trial], "heldout")
+        before, = evaluator.search_residuals([hypothesis], "heldout")
+        after, = evaluator.search_residuals([trial], "heldout")
         if float(np.sum(after**2)) <= (1.0 + settings.min_relative_gain) * float(np.sum(before**2)):
             others = ", ".join(label for label in labels if label != held)
             notes.append(f"gauge: {held} is held at the source's value; the data cannot separate it from {others} "

@@ -78,7 +78,7 @@ class ResidualEvaluator:
 
     def __init__(self, source: SourceSimulator, data: Transitions, *, horizon: int = 10,
                  heldout_fraction: float = 0.3, screen_rows: int = 2000, fit_rows: int = 5000,
-                 seed: int = 0) -> None:
+                 seed: int = 0, search_horizon: int = 1) -> None:
         source.check_data(data)
         self.source = source
         self.data = data
@@ -121,6 +121,22 @@ class ResidualEvaluator:
             "fit": np.sort(rng.choice(train, size=min(fit_rows, len(train)), replace=False)),
         }
         self.windows = {name: self._window_starts(rows) for name, rows in (("train", train), ("heldout", heldout))}
+        # The search (screen, fits, choice, stop) compares predictions search_horizon steps ahead:
+        # at a high control rate one step moves the state less than the sensor noise, and effects
+        # that a single step hides add up over several.
+        self.search_horizon = search_horizon
+        if search_horizon == 1:
+            self.search_starts = dict(self.subsets)
+        else:
+            train_k, heldout_k = self._window_starts(train, search_horizon), self._window_starts(heldout, search_horizon)
+            if len(train_k) < 20 or len(heldout_k) < 10:
+                raise DiagnosisInputError(f"too few windows of {search_horizon} steps to search on ({len(train_k)} "
+                                          f"training and {len(heldout_k)} held-out); use a shorter search horizon")
+            self.search_starts = {
+                "train": train_k, "heldout": heldout_k,
+                "screen": np.sort(rng.choice(train_k, size=min(screen_rows, len(train_k)), replace=False)),
+                "fit": np.sort(rng.choice(train_k, size=min(fit_rows, len(train_k)), replace=False)),
+            }
         if not any(len(w) for w in self.windows.values()):
             self.notes.append(f"no episode is {horizon} steps long: the H-step error is not measured (reported as null)")
         change = data.next_observations[:, self.dims] - data.observations[:, self.dims]
@@ -131,6 +147,12 @@ class ResidualEvaluator:
             self.horizon_spread = _safe_spread(h_change)
         else:
             self.horizon_spread = self.spread
+        if search_horizon == 1:
+            self.search_spread = self.spread
+        else:
+            starts_k = self.search_starts["train"]
+            self.search_spread = _safe_spread(data.next_observations[starts_k + search_horizon - 1][:, self.dims]
+                                              - data.observations[starts_k][:, self.dims])
         self._cache: dict[tuple, np.ndarray] = {}
         if self.rebuilt:
             self._check_unobserved_coordinates()
@@ -164,9 +186,9 @@ class ResidualEvaluator:
         else:
             self.notes.append(f"checked: the dynamics do not depend on {', '.join(labels)}")
 
-    def _window_starts(self, rows: np.ndarray) -> np.ndarray:
+    def _window_starts(self, rows: np.ndarray, horizon: int | None = None) -> np.ndarray:
         """Non-overlapping windows of ``horizon`` rows inside one episode, all usable at the start."""
-        h = self.horizon
+        h = self.horizon if horizon is None else horizon
         candidates = rows[(self.step[rows] % h == 0)]
         end = candidates + h - 1
         ok = end < self.data.size
@@ -311,6 +333,26 @@ class ResidualEvaluator:
         spread = self.spread if horizon == 1 else self.horizon_spread
         predictions = self.predict(hypotheses, starts, horizon, cache_key=subset)
         return [(p - recorded) / spread for p in predictions]
+
+    def search_residuals(self, hypotheses: Sequence[Hypothesis], subset: str) -> list[np.ndarray]:
+        """Residuals the search works on: ``search_horizon`` steps open loop from the starts of
+        ``subset`` (``screen``, ``fit``, ``train`` or ``heldout``); one step by default."""
+        k = self.search_horizon
+        if k == 1:
+            return self.residuals(hypotheses, subset)
+        starts = self.search_starts[subset]
+        recorded = self.data.next_observations[starts + k - 1][:, self.dims]
+        predictions = self.predict(hypotheses, starts, k, cache_key=f"search-{subset}")
+        return [(p - recorded) / self.search_spread for p in predictions]
+
+    def search_floor(self) -> tuple[float, np.ndarray]:
+        """The noise floor in the search's units: the endpoint's sensor noise over the spread of the
+        ``search_horizon``-step change (the start state is the stored one, exact)."""
+        floor, per_dim = self.noise_floor()
+        if self.search_horizon == 1:
+            return floor, per_dim
+        scaled = np.maximum(per_dim * self.spread / self.search_spread, NUMERICAL_FLOOR)
+        return max(float(np.sqrt(np.mean(scaled**2))), NUMERICAL_FLOOR), scaled
 
     def summary(self, hypothesis: Hypothesis) -> dict[str, ErrorSummary]:
         """One-step error on training and held-out rows, and H-step error on all windows. The

@@ -53,7 +53,7 @@ def same_target(candidate: Candidate, hypothesis: Hypothesis) -> bool:
 
 def screen(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidates: Sequence[Candidate]) -> list[ScreenScore]:
     """Score every candidate not yet in ``hypothesis``; best first."""
-    base, = evaluator.residuals([hypothesis], "screen")
+    base, = evaluator.search_residuals([hypothesis], "screen")
     sse0 = _sse(base)
     trials: list[tuple[Candidate, float]] = []
     for candidate in candidates:
@@ -65,7 +65,7 @@ def screen(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidates: Seq
                 value = candidate.nominal - candidate.probe
             trials.append((candidate, value))
         trials.extend((candidate, candidate.clip(value)) for value in candidate.trials)
-    residuals = evaluator.residuals([hypothesis + (c.effect(v),) for c, v in trials], "screen")
+    residuals = evaluator.search_residuals([hypothesis + (c.effect(v),) for c, v in trials], "screen")
     best: dict[Candidate, ScreenScore] = {}
     probed: set[Candidate] = set()
     for (candidate, value), residual in zip(trials, residuals):
@@ -107,7 +107,7 @@ def _jacobian_column(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candi
     step = 0.01 * (candidate.high - candidate.low) if candidate.search == "threshold" else 0.05 * candidate.probe
     if value + step > candidate.high:
         step = -step
-    moved, = evaluator.residuals([hypothesis + (candidate.effect(value + step),)], subset)
+    moved, = evaluator.search_residuals([hypothesis + (candidate.effect(value + step),)], subset)
     return (moved - residual).ravel() / step
 
 
@@ -121,7 +121,7 @@ def fit(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candida
         value, resolution = _fit_threshold(evaluator, hypothesis, candidate, subset)
     else:  # integers and categories: every value is tried
         value = _fit_integer(evaluator, hypothesis, candidate, subset)
-    residual, = evaluator.residuals([hypothesis + (candidate.effect(value),)], subset)
+    residual, = evaluator.search_residuals([hypothesis + (candidate.effect(value),)], subset)
     if candidate.search in ("integer", "categorical"):
         interval = (value, value)
     else:
@@ -142,7 +142,7 @@ def _fit_smooth(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate:
 
     def residual(z: np.ndarray) -> np.ndarray:
         values = [to_value(float(zi)) for zi in z[0]]
-        parts = evaluator.residuals([hypothesis + (candidate.effect(v),) for v in values], subset)
+        parts = evaluator.search_residuals([hypothesis + (candidate.effect(v),) for v in values], subset)
         return np.stack([p.ravel() for p in parts], axis=1)
 
     bounds = [np.array([(candidate.low - candidate.nominal) / scale]),
@@ -163,7 +163,7 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
     levels = 3 if candidate.kind == "action_deadzone" else 5
     for _ in range(levels):
         grid = np.linspace(low, high, 9)
-        errors = [_sse(r) for r in evaluator.residuals([hypothesis + (candidate.effect(v),) for v in grid], subset)]
+        errors = [_sse(r) for r in evaluator.search_residuals([hypothesis + (candidate.effect(v),) for v in grid], subset)]
         best = float(grid[int(np.argmin(errors))])
         step = float(grid[1] - grid[0])
         low, high = max(candidate.low, best - step), min(candidate.high, best + step)
@@ -172,7 +172,7 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
         # between neighbouring command magnitudes inside the bracket (at most 32), on every
         # training row, since only rows whose command lies between two trials are re-simulated.
         subset = "train"
-        commands = evaluator.applied_actions(hypothesis)[evaluator.subsets[subset]]
+        commands = evaluator.applied_actions(hypothesis)[evaluator.search_starts[subset]]
         mask = candidate.effect(best).dimension_mask(commands.shape[1], evaluator.source.base_model)  # type: ignore[attr-defined]
         magnitudes = np.unique(np.abs(commands[:, mask]))
         for _ in range(4):
@@ -198,10 +198,10 @@ def _residuals_one_by_one(evaluator: ResidualEvaluator, hypothesis: Hypothesis, 
                           values: list[float], subset: str) -> list[np.ndarray]:
     """Residuals of neighbouring values one call at a time, so each reuses the previous rollout
     for every row the small change leaves alone."""
-    return [evaluator.residuals([hypothesis + (candidate.effect(v),)], subset)[0] for v in values]
+    return [evaluator.search_residuals([hypothesis + (candidate.effect(v),)], subset)[0] for v in values]
 
 
 def _fit_integer(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate, subset: str) -> float:
     values = np.arange(int(candidate.low), int(candidate.high) + 1)
-    residuals = evaluator.residuals([hypothesis + (candidate.effect(v),) for v in values], subset)
+    residuals = evaluator.search_residuals([hypothesis + (candidate.effect(v),) for v in values], subset)
     return float(values[int(np.argmin([_sse(r) for r in residuals]))])

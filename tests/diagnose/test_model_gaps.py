@@ -13,12 +13,13 @@ import pytest
 from diagnose_target_data import record
 
 from offdyn_bench import make_robot_env
-from offdyn_bench.diagnose import DiagnosisSettings, Transitions, diagnose
+from offdyn_bench.diagnose import DiagnosisInputError, DiagnosisSettings, Transitions, diagnose
 from offdyn_bench.diagnose.candidates import candidate_library
 from offdyn_bench.diagnose.identifiability import UNRESOLVED_RATIO, identifiability
 from offdyn_bench.diagnose.loop import _fix_gauge
 from offdyn_bench.diagnose.residual import ResidualEvaluator
 from offdyn_bench.diagnose.source import SourceSimulator
+from offdyn_bench.errors import InvalidParameterError
 from offdyn_bench.diagnose.systematic import (
     SYSTEMATIC_R2,
     horizon_under_action_noise,
@@ -176,3 +177,28 @@ def test_a_command_miscalibrated_per_episode_is_not_called_noise() -> None:
     noisy = _evaluator([{"kind": "action_noise", "std": 0.1}], seed=15)
     real = horizon_under_action_noise(noisy, (), 0.1)
     assert real is not None and real.consistent and 0.7 < real.ratio < 1.3
+
+
+def test_a_longer_search_horizon_finds_effects_and_keeps_the_floor_in_its_units() -> None:
+    """The search can compare predictions several steps ahead (for high-rate data whose one-step
+    change is below the sensor noise): it still names the effect, and its floor is the same sensor
+    noise measured against the larger change over the search horizon."""
+    hidden = [{"kind": "obs_noise", "std": 0.005}, {"kind": "gear", "target": "foot_joint", "scale": 0.7}]
+    data = Transitions(**record(hidden, STEPS, seed=3))
+    result = diagnose("Hopper-v5", data, DiagnosisSettings(screen_rows=400, fit_rows=700, search_horizon=5))
+    assert [(e["kind"], e["target"]) for e in result.effects_added] == [("gear", "foot_joint")]
+    assert result.effects_added[0]["value"] == pytest.approx(0.7, rel=0.10)
+    assert not result.unexplained_residual and result.to_json()["search_horizon"] == 5
+    evaluator = ResidualEvaluator(SourceSimulator("Hopper-v5"), data, screen_rows=400, fit_rows=700, search_horizon=5)
+    _, one_step = evaluator.noise_floor()
+    _, five_steps = evaluator.search_floor()
+    np.testing.assert_allclose(five_steps, np.maximum(one_step * evaluator.spread / evaluator.search_spread, 1e-6))
+    assert np.all(evaluator.search_spread > evaluator.spread)  # the state moves further in five steps
+
+
+def test_a_search_horizon_longer_than_the_episodes_is_a_clear_error() -> None:
+    data = Transitions(**record([], 300, seed=4))
+    with pytest.raises(DiagnosisInputError, match="too few windows of 400 steps"):
+        diagnose("Hopper-v5", data, DiagnosisSettings(search_horizon=400))
+    with pytest.raises(InvalidParameterError, match="search_horizon"):
+        DiagnosisSettings(search_horizon=0)
