@@ -13,7 +13,7 @@ import fcntl
 import json
 import os
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -63,25 +63,31 @@ def holds_files(out: Path) -> bool:
 
 
 @contextmanager
-def run_folder_lock(out: Path) -> Iterator[None]:
-    """Hold an exclusive lock on run folder ``out`` (created if missing) for the block; a second
-    holder, in this process or another, gets a clear error at once instead of waiting."""
+def exclusive_folder_lock(folder: Path, lock_file: str, in_use: str) -> Iterator[None]:
+    """Hold an exclusive lock on ``folder`` (created if missing) through ``lock_file`` for the
+    block; a second holder, in this process or another, gets ``OffdynError(in_use)`` at once
+    instead of waiting."""
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd = os.open(out / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / lock_file, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as error:
-        raise OffdynError(f"cannot create run folder {str(out)!r}: {error.strerror}") from None
+        raise OffdynError(f"cannot create folder {str(folder)!r}: {error.strerror}") from None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:
             if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise OffdynError(f"--out {str(out)!r} is in use by another training process (its {LOCK_FILE} is "
-                                  "locked); wait for it to finish or use another folder") from None
-            raise OffdynError(f"cannot lock run folder {str(out)!r}: {error.strerror}") from None
+                raise OffdynError(in_use) from None
+            raise OffdynError(f"cannot lock folder {str(folder)!r}: {error.strerror}") from None
         yield
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+def run_folder_lock(out: Path) -> AbstractContextManager[None]:
+    """Hold an exclusive lock on run folder ``out`` (created if missing) for the block."""
+    return exclusive_folder_lock(out, LOCK_FILE, f"--out {str(out)!r} is in use by another training process (its "
+                                                 f"{LOCK_FILE} is locked); wait for it to finish or use another folder")
 
 
 def read_metrics(out: Path, resume_step: int) -> tuple[list[str], list[str]]:

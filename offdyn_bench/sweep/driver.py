@@ -13,18 +13,16 @@ train command resumes from the checkpoints).
 from __future__ import annotations
 
 import dataclasses
-import errno
-import fcntl
 import json
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
-from baselines.run_folder import write_json_atomic
+from baselines.run_folder import exclusive_folder_lock, write_json_atomic
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, default_workers
 from offdyn_bench.sweep.execute import AttemptOutcome
@@ -108,22 +106,10 @@ def _check_out(out: Path) -> None:
         raise OffdynError(f"out {str(out)!r} cannot be written: {str(ancestor)!r} is not a writable folder")
 
 
-@contextmanager
-def _sweep_lock(out: Path) -> Iterator[None]:
+def _sweep_lock(out: Path) -> AbstractContextManager[None]:
     """One sweep driver per output folder at a time (a second one stops at once, naming it)."""
-    out.mkdir(parents=True, exist_ok=True)
-    fd = os.open(out / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as error:
-            if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise OffdynError(f"another sweep is running on {str(out)!r} (its {LOCK_FILE} is locked); wait for "
-                                  "it or use another out") from None
-            raise
-        yield
-    finally:
-        os.close(fd)
+    return exclusive_folder_lock(out, LOCK_FILE, f"another sweep is running on {str(out)!r} (its {LOCK_FILE} is "
+                                                 "locked); wait for it or use another out")
 
 
 def _read_state(path: Path) -> dict[str, Any]:
