@@ -20,7 +20,13 @@ import numpy as np
 from offdyn_bench.diagnose.source import SourceSimulator
 from offdyn_bench.effects import EFFECT_KINDS, Effect
 from offdyn_bench.effects.base import Interval
-from offdyn_bench.effects.model import actuated_joint_ids, actuator_name, dof_ids
+from offdyn_bench.effects.model import (
+    CONES,
+    INTEGRATORS,
+    actuated_joint_ids,
+    actuator_name,
+    dof_ids,
+)
 
 Search = Literal["smooth", "threshold", "integer", "categorical"]
 
@@ -209,8 +215,8 @@ def _geometry_candidates(source: SourceSimulator) -> list[Candidate]:
 def _solver_candidates(model: mujoco.MjModel) -> list[Candidate]:
     """Numerical choices of the engine: the integrator and the friction cone."""
     out: list[Candidate] = []
-    for kind, field, enum, names in (("integrator", "integrator", mujoco.mjtIntegrator, INTEGRATOR_NAMES),
-                                     ("friction_cone", "cone", mujoco.mjtCone, CONE_NAMES)):
+    for kind, field, enum, names in (("integrator", "integrator", mujoco.mjtIntegrator, INTEGRATORS),
+                                     ("friction_cone", "cone", mujoco.mjtCone, CONES)):
         current = int(getattr(model.opt, field))
         choices = tuple(label for label, member in names.items() if hasattr(enum, member))
         nominal = next((i for i, label in enumerate(choices) if int(getattr(enum, names[label])) == current), None)
@@ -219,12 +225,6 @@ def _solver_candidates(model: mujoco.MjModel) -> list[Candidate]:
         out.append(Candidate(kind, None, float(nominal), 0.0, float(len(choices) - 1), 1.0, "categorical",
                              trials=tuple(float(i) for i in range(len(choices)) if i != nominal), choices=choices))
     return out
-
-
-# The effect's names for MuJoCo's integrators and cones (offdyn_bench.effects.model).
-INTEGRATOR_NAMES = {"Euler": "mjINT_EULER", "RK4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT",
-                    "implicitfast": "mjINT_IMPLICITFAST"}
-CONE_NAMES = {"pyramidal": "mjCONE_PYRAMIDAL", "elliptic": "mjCONE_ELLIPTIC"}
 
 
 def candidate_library(source: SourceSimulator, *, obs_bias_dims: Iterable[int] | None = None,

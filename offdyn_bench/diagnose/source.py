@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import os
 from collections.abc import Sequence
 from typing import Any
@@ -156,11 +157,12 @@ class SourceSimulator:
         self._model_cache: dict[tuple[Effect, ...], mujoco.MjModel] = {}
         self._declared_model_effects = model_effects
         self.xml_path: str | None = getattr(unwrapped, "fullpath", None)
-        self.compiles_from_spec = self._recompiles_exactly()
 
-    def _recompiles_exactly(self) -> bool:
+    @functools.cached_property
+    def compiles_from_spec(self) -> bool:
         """Whether compiling the env's XML with its declared model effects gives its model: only
-        then may geometry effects (which edit the XML's spec before compiling) be candidates."""
+        then may geometry effects (which edit the XML's spec before compiling) be candidates.
+        Checked on first use: it compiles the model once."""
         if not self.xml_path or not os.path.isfile(self.xml_path):
             return False
         try:

@@ -17,7 +17,8 @@ import dataclasses
 
 import numpy as np
 
-from offdyn_bench.diagnose.residual import Hypothesis, ResidualEvaluator
+from offdyn_bench.diagnose.residual import Hypothesis, ResidualEvaluator, physics_key
+from offdyn_bench.effects.model import ModelEffect
 
 # Held-out R^2 above this marks the residual systematic. Pure noise scores about -features/rows
 # (a ridge fit of nothing); a tenth of the residual's energy predictable is a model error worth
@@ -128,9 +129,6 @@ def horizon_under_action_noise(evaluator: ResidualEvaluator, hypothesis: Hypothe
     commands plus noise of ``std``: if the data's own noise were that, the recorded H-step
     observations would differ from the noiseless prediction by as much as the noisy rollouts do.
     ``None`` when no window of H steps exists."""
-    from offdyn_bench.diagnose.residual import physics_key
-    from offdyn_bench.effects.model import ModelEffect
-
     starts = evaluator.windows["train"]
     if len(starts) == 0 or evaluator.horizon < 2:
         return None

@@ -646,9 +646,10 @@ class ContactSolimp(ModelEffect):
             model.pair_solimp[:] = values
 
 
-# Names of mujoco.mjtCone / mujoco.mjtIntegrator members, looked up when an effect is applied.
-_CONES = {"pyramidal": "mjCONE_PYRAMIDAL", "elliptic": "mjCONE_ELLIPTIC"}
-_INTEGRATORS = {"Euler": "mjINT_EULER", "RK4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT",
+# The effects' names for MuJoCo's cones and integrators: members of mujoco.mjtCone /
+# mujoco.mjtIntegrator, looked up when an effect is applied (and by diagnosis's candidates).
+CONES = {"pyramidal": "mjCONE_PYRAMIDAL", "elliptic": "mjCONE_ELLIPTIC"}
+INTEGRATORS = {"Euler": "mjINT_EULER", "RK4": "mjINT_RK4", "implicit": "mjINT_IMPLICIT",
                 "implicitfast": "mjINT_IMPLICITFAST"}
 
 
@@ -660,11 +661,11 @@ class FrictionCone(ModelEffect):
     target_type: ClassVar = "global"
     value_field: ClassVar[str] = "cone"
     fields: ClassVar = ("opt.cone",)
-    ranges: ClassVar = {"cone": OneOf(tuple(_CONES))}
+    ranges: ClassVar = {"cone": OneOf(tuple(CONES))}
     cone: str
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
-        model.opt.cone = getattr(mujoco.mjtCone, _CONES[self.cone])
+        model.opt.cone = getattr(mujoco.mjtCone, CONES[self.cone])
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -675,11 +676,11 @@ class Integrator(ModelEffect):
     target_type: ClassVar = "global"
     value_field: ClassVar[str] = "integrator"
     fields: ClassVar = ("opt.integrator",)
-    ranges: ClassVar = {"integrator": OneOf(tuple(_INTEGRATORS))}
+    ranges: ClassVar = {"integrator": OneOf(tuple(INTEGRATORS))}
     integrator: str
 
     def apply_to_model(self, model: mujoco.MjModel) -> None:
-        model.opt.integrator = getattr(mujoco.mjtIntegrator, _INTEGRATORS[self.integrator])
+        model.opt.integrator = getattr(mujoco.mjtIntegrator, INTEGRATORS[self.integrator])
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
