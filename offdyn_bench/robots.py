@@ -12,6 +12,8 @@ from collections.abc import Mapping
 from types import MappingProxyType
 
 from offdyn_bench.errors import UnknownNameError
+from offdyn_bench.robotics.adroit import ADROIT_EPISODE_STEPS, ADROIT_TASKS
+from offdyn_bench.robotics.mazes import MAZES, REWARD_TYPES, antmaze_robot
 from offdyn_bench.wheel_legged.pairs import EPISODE_STEPS as WHEEL_LEGGED_EPISODE_STEPS
 
 
@@ -93,6 +95,15 @@ _ROBOT_LIST = [
         reference_env_id="InvertedPendulum-v5",
     ),
 ]
+# Gymnasium-Robotics' families (issue 16): AntMaze per maze size and reward, and the Adroit hand tasks.
+_ROBOT_LIST += [
+    Robot(name=antmaze_robot(maze.name, reward), max_episode_steps=maze.episode_steps,
+          env_class=f"offdyn_bench.robotics.antmaze:{antmaze_robot(maze.name, reward)}Env",
+          reference_env_id=maze.vanilla_env_id.replace("-v5", f"{'Dense' if reward == 'dense' else ''}-v5"))
+    for maze in MAZES.values() for reward in REWARD_TYPES
+]
+_ROBOT_LIST += [Robot(name=task.robot, env_class=task.env_class, max_episode_steps=ADROIT_EPISODE_STEPS,
+                      reference_env_id=task.vanilla_env_id) for task in ADROIT_TASKS.values()]
 
 ROBOTS: Mapping[str, Robot] = MappingProxyType({r.name: r for r in _ROBOT_LIST})
 

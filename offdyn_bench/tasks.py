@@ -35,6 +35,8 @@ from offdyn_bench.effects import (
     effects_from_dicts,
 )
 from offdyn_bench.errors import OffdynError, UnknownNameError
+from offdyn_bench.robotics.adroit import adroit_pairs
+from offdyn_bench.robotics.mazes import antmaze_pairs
 from offdyn_bench.robots import ROBOTS, get_robot
 from offdyn_bench.wheel_legged.pairs import ROBOT as WHEEL_LEGGED
 from offdyn_bench.wheel_legged.pairs import TASK_NAMES as WHEEL_LEGGED_TASKS
@@ -237,6 +239,11 @@ def _grid() -> list[TaskPair]:
                        description=f"{task}: clean model -> real robot (motor dead zone, drive friction, "
                                    "worn tyre friction, 5 ms sensor latency, sensor noise)")
               for task in WHEEL_LEGGED_TASKS]
+    # Gymnasium-Robotics' families (issue 16): AntMaze layouts, Adroit broken joints and shrunk fingers.
+    pairs += [_shifted(robot, shift, level, effects, description=description)
+              for robot, shift, level, effects, description in antmaze_pairs()]
+    pairs += [_shifted(robot, shift, level, effects, part=part, description=description)
+              for robot, shift, part, level, effects, description in adroit_pairs()]
     return pairs
 
 

@@ -64,7 +64,12 @@ EXAMPLES: dict[str, dict] = {
     "obs_noise": {"target": 3, "std": 0.01},
     "obs_bias": {"target": 0, "value": 0.1},
     "obs_delay": {"steps": 1},
+    "maze_layout": {"walls": ["11111", "10001", "11101", "10001", "11111"]},
 }
+# Kinds that act on maze models only (their blocks); tests/robotics builds them on AntMaze, and
+# test_a_maze_effect_refuses_a_model_without_a_maze checks the error on Hopper.
+MAZE_KINDS = {"maze_layout"}
+HOPPER_KINDS = sorted(set(EXAMPLES) - MAZE_KINDS)
 
 
 def test_every_kind_has_an_example():
@@ -82,7 +87,7 @@ def test_json_round_trip(kind):
     assert again.to_dict() == json.loads(text)
 
 
-@pytest.mark.parametrize("kind", sorted(EXAMPLES))
+@pytest.mark.parametrize("kind", HOPPER_KINDS)
 def test_every_kind_builds_a_hopper(kind):
     from offdyn_bench.envs import make_robot_env
 
@@ -90,6 +95,14 @@ def test_every_kind_builds_a_hopper(kind):
     env.reset(seed=0)
     for _ in range(5):
         env.step(env.action_space.sample())
+
+
+@pytest.mark.parametrize("kind", sorted(MAZE_KINDS))
+def test_a_maze_effect_refuses_a_model_without_a_maze(kind):
+    from offdyn_bench.envs import make_robot_env
+
+    with pytest.raises(OffdynError, match="acts on maze models"):
+        make_robot_env("Hopper", [{"kind": kind, **EXAMPLES[kind]}])
 
 
 def test_effects_are_frozen():
@@ -372,7 +385,7 @@ def _in_range(allowed) -> st.SearchStrategy:
 
 @st.composite
 def _valid_hopper_effects(draw: st.DrawFn) -> dict:
-    kind = draw(st.sampled_from(sorted(EFFECT_KINDS)))
+    kind = draw(st.sampled_from(HOPPER_KINDS))
     cls = EFFECT_KINDS[kind]
     data = {"kind": kind, "target": EXAMPLES[kind].get("target")}
     data.update({name: draw(_in_range(allowed)) for name, allowed in cls.ranges.items()})

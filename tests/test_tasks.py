@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import pickle
 import re
 import subprocess
@@ -22,17 +23,21 @@ from offdyn_bench.tasks import SIDES, TASKS, TaskPair, get_task, register_tasks
 
 ALL_IDS = [pair.env_id(side) for pair in TASKS.values() for side in SIDES]
 ID_PATTERN = re.compile(r"^offdyn/((Ant|HalfCheetah|Hopper|Walker2d|InvertedPendulum)-[a-z0-9-]+(-[a-z0-9]+)?-"
-                        r"[a-z0-9.]+|WheelLegged-(standstill|movestraight)|(Hopper|Walker2d)-dart)"
+                        r"[a-z0-9.]+|WheelLegged-(standstill|movestraight)|(Hopper|Walker2d)-dart"
+                        r"|AntMaze(Small|Medium|Large)(Dense)?-layout-[a-z0-9-]+"
+                        r"|Adroit(Pen|Door|Relocate|Hammer)-(broken-joint|shrink-finger)-[a-z-]+-(easy|medium|hard))"
                         r"-(source|target)-v\d+$")
 
 
 def _rollout(env: gymnasium.Env, seed: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    # Flattened: AntMaze observations are dicts (observation, achieved_goal, desired_goal).
+    flat = functools.partial(gymnasium.spaces.flatten, env.observation_space)
     obs, _ = env.reset(seed=seed)
     env.action_space.seed(seed)
-    observations, rewards = [obs], []
+    observations, rewards = [flat(obs)], []
     for _ in range(steps):
         obs, reward, terminated, truncated, _ = env.step(env.action_space.sample())
-        observations.append(obs)
+        observations.append(flat(obs))
         rewards.append(reward)
         if terminated or truncated:
             break
@@ -169,8 +174,17 @@ def test_target_differs_from_base_only_where_its_effects_declare(name):
                 assert differences["jnt_range"].rows == (effect.target,)
             elif effect.kind == "limb_size":
                 mass = differences["body_mass"]
-                assert mass.rows == (effect.target,)
-                assert mass.after[0, 0] / mass.before[0, 0] == pytest.approx(effect.scale**3)
+                # Several limb_size effects (a shrunk Adroit finger: one per segment) change only their bodies.
+                assert set(mass.rows) <= {e.target for e in effects if e.kind == "limb_size"}
+                row = mass.rows.index(effect.target)
+                assert mass.after[row, 0] / mass.before[row, 0] == pytest.approx(effect.scale**3)
+            elif effect.kind == "maze_layout":
+                # Exactly the blocks of the cells whose wall changed move (up onto or down under the floor).
+                blocks = {compiled.geom(g).name: g for g in range(compiled.ngeom)
+                          if compiled.geom(g).name.startswith("block_")}
+                changed = {name for name, g in blocks.items()
+                           if (base.geom_pos[g, 2] > 0) != (effect.walls[int(name.split("_")[1])][int(name.split("_")[2])] == "1")}
+                assert changed and set(differences["geom_pos"].rows) == changed
             elif effect.kind == "action_noise":
                 assert not differences  # a channel effect leaves the model alone
             elif effect.family == "channel":

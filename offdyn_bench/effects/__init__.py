@@ -38,13 +38,14 @@ from offdyn_bench.effects.model import (
     compile_model,
     split_effects,
 )
+from offdyn_bench.effects.layout import MazeLayout  # after model: a model effect of its own module
 
 __all__ = [
     "EFFECT_KINDS", "Effect", "ModelEffect", "ChannelEffect", "ChannelEffects",
     "effects_from_dicts", "effects_to_dicts", "compile_model", "apply_model_effects", "split_effects",
     "Gravity", "Friction", "Mass", "Damping", "FrictionLoss", "Armature", "Gear", "JointRange",
     "JointLimit", "JointLimitSoftness", "BodyOffset", "GeomSize", "LimbSize", "ContactSolref",
-    "ContactSolimp", "FrictionCone", "Integrator", "NoSlip",
+    "ContactSolimp", "FrictionCone", "Integrator", "NoSlip", "MazeLayout",
     "ActionNoise", "ActionDeadzone", "ActionBias", "ActionGain", "ActionSaturation", "ActionDelay",
     "ObsNoise", "ObsBias", "ObsDelay",
 ]
