@@ -60,17 +60,20 @@ class AdroitTask:
 
 
 _MODULE = "offdyn_bench.robotics.adroit_envs"  # imported when an env is built, not with the task grid
-# The thumb's base joint THJ4 turns the thumb across the palm to oppose the fingers: every grasp
-# and the pen's in-hand turn need it. The index finger closes first round a handle or an object.
+# The broken joint is the thumb's proximal flexion THJ3 in all four tasks: of the nine thumb and
+# index joints a pinch uses, it is the one the others cannot make up for (measured with
+# offdyn_bench.robotics.probes.pinch_gap: THJ3 x0.5 opens the closest thumb-index pinch from 13 to
+# 17 mm, x0.2 to 33 mm; THJ4, THJ1, FFJ2 or FFJ3 at x0.2 leave it within 0.2 mm). The shrunk finger
+# is the one the task's contact leans on.
 ADROIT_TASKS: Mapping[str, AdroitTask] = MappingProxyType({t.robot: t for t in (
-    AdroitTask("AdroitPen", f"{_MODULE}:AdroitHandPenEnv", "AdroitHandPen-v1", ("thumb-base", "THJ4"), "index",
+    AdroitTask("AdroitPen", f"{_MODULE}:AdroitHandPenEnv", "AdroitHandPen-v1", ("thumb-flex", "THJ3"), "index",
                "the pen turns between thumb and index finger"),
-    AdroitTask("AdroitDoor", f"{_MODULE}:AdroitHandDoorEnv", "AdroitHandDoor-v1", ("index-knuckle", "FFJ2"), "index",
+    AdroitTask("AdroitDoor", f"{_MODULE}:AdroitHandDoorEnv", "AdroitHandDoor-v1", ("thumb-flex", "THJ3"), "index",
                "the index finger hooks the handle to turn the latch"),
     AdroitTask("AdroitRelocate", f"{_MODULE}:AdroitHandRelocateEnv", "AdroitHandRelocate-v1",
-               ("thumb-base", "THJ4"), "thumb", "the ball is held between thumb and fingers"),
+               ("thumb-flex", "THJ3"), "thumb", "the ball is held between thumb and fingers"),
     AdroitTask("AdroitHammer", f"{_MODULE}:AdroitHandHammerEnv", "AdroitHandHammer-v1",
-               ("thumb-base", "THJ4"), "thumb", "the handle is held in a power grasp closed by the thumb"),
+               ("thumb-flex", "THJ3"), "thumb", "the handle is held in a power grasp closed by the thumb"),
 )})
 ADROIT_EPISODE_STEPS = 200  # as Gymnasium-Robotics registers the v1 envs
 
