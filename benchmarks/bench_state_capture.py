@@ -59,7 +59,7 @@ def _variants(base_step: Callable) -> dict[str, Callable]:
     def block_rows(env):
         def step(action):
             result = base_step(env, action)
-            rows = env._state_rows or env._new_state_rows()
+            rows = env._suite.rows or env._suite.new_rows()
             destination, _ = rows.pop()
             get_state(env.model, env.data, destination, bits)
             return result

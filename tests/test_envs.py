@@ -262,3 +262,74 @@ def test_states_stay_distinct_read_only_and_unchanged_across_state_blocks():
         assert not state.flags.writeable
     assert len({id(state) for state in kept}) == len(kept)
     assert len({state[0] for state in kept}) == len(kept)  # each at its own time
+
+
+@pytest.mark.parametrize("robot", ["Hopper", "Walker2d", "HalfCheetah", "Ant", "InvertedPendulum"])
+def test_an_env_without_effects_steps_exactly_like_vanilla_gymnasium(robot):
+    """The suite's faster do_simulation, dt and state capture change nothing Gymnasium computes:
+    the same observations, rewards, terminations and info, bit for bit, and a state that is
+    MuJoCo's own mj_getState."""
+    vanilla = gymnasium.make(f"{robot}-v5").unwrapped
+    suite = make_robot_env(robot)
+    assert suite.dt == vanilla.dt
+    vanilla_obs, _ = vanilla.reset(seed=3)
+    suite_obs, info = suite.reset(seed=3)
+    np.testing.assert_array_equal(suite_obs, vanilla_obs)
+    size = mujoco.mj_stateSize(vanilla.model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    rng = np.random.default_rng(0)
+    for t in range(60):
+        # float32, float64 and a list; some commands beyond the control range
+        action = rng.uniform(-1.5, 1.5, size=suite.action_space.shape)
+        action = action.astype(np.float32) if t % 3 == 0 else (action.tolist() if t % 3 == 1 else action)
+        expected, actual = vanilla.step(action), suite.step(action)
+        np.testing.assert_array_equal(actual[0], expected[0])
+        assert actual[1:4] == expected[1:4]
+        assert {k: v for k, v in actual[4].items() if k not in ("state", "prev_state")} == expected[4]
+        state = np.empty(size)
+        mujoco.mj_getState(vanilla.model, vanilla.data, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        np.testing.assert_array_equal(actual[4]["state"], state)
+        if expected[2]:
+            break
+    with pytest.raises(ValueError, match=r"Action dimension mismatch. Expected \(\d+,\), found \(\d+,\)"):
+        suite.step(np.zeros(suite.action_space.shape[0] + 1))
+    suite.model.opt.timestep *= 2  # dt reads the live model, as Gymnasium's does
+    assert suite.dt == pytest.approx(2 * vanilla.dt)
+
+
+def test_channel_states_chain_and_follow_moves_of_physics_and_buffers():
+    """With delay buffers, each step's prev_state is the previous step's state (one array), and
+    after a move of the physics (set_state) or of everything (set_full_state) it is what was there."""
+    env = make_robot_env("Hopper", [{"kind": "obs_delay", "steps": 2}, {"kind": "action_delay", "steps": 1}])
+    _, info = env.reset(seed=0)
+    base = env.unwrapped
+    nq, physics = base.model.nq, base.state_size
+    previous = info["state"]
+    assert previous.size == physics + 2 * 11 + 3
+    actions = np.random.default_rng(1).uniform(-1, 1, size=(6, 3))
+    for action in actions[:3]:
+        _, _, _, _, info = env.step(action)
+        assert info["prev_state"] is previous
+        assert not info["state"].flags.writeable
+        previous = info["state"]
+    buffers = previous[physics:].copy()
+    qpos = base.data.qpos.copy()
+    qpos[1] += 0.3
+    base.set_state(qpos, np.zeros(base.model.nv))  # physics moved, buffers not
+    _, _, _, _, info = env.step(actions[3])
+    np.testing.assert_array_equal(info["prev_state"][1: 1 + nq], qpos)
+    np.testing.assert_array_equal(info["prev_state"][physics:], buffers)
+    older = previous
+    set_full_state(env, older)  # everything moved back
+    _, _, _, _, info = env.step(actions[4])
+    np.testing.assert_array_equal(info["prev_state"], older)
+    assert info["prev_state"] is not older  # a vector of its own: the step does not hand back the input
+
+
+def test_wheel_legged_env_keeps_its_own_motor_model():
+    """The suite's faster do_simulation replaces only Gymnasium's: the wheel-legged env's own
+    (clip to [-1, 1], torque cost on what the motors got) still runs."""
+    env = gymnasium.make("offdyn/WheelLegged-standstill-source-v0")
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([2.5]))
+    assert env.unwrapped.data.ctrl[0] == 1.0
+    assert info["reward_torque"] == -4.0
