@@ -323,6 +323,16 @@ def test_channel_states_chain_and_follow_moves_of_physics_and_buffers():
     _, _, _, _, info = env.step(actions[4])
     np.testing.assert_array_equal(info["prev_state"], older)
     assert info["prev_state"] is not older  # a vector of its own: the step does not hand back the input
+    kept, copies = [], []
+    for action in np.random.default_rng(2).uniform(-1, 1, size=(150, 3)):  # > 2 blocks of states
+        _, _, terminated, _, info = env.step(action)
+        kept.append(info["state"])
+        copies.append(info["state"].copy())
+        if terminated:
+            env.reset(seed=5)
+    for state, copy in zip(kept, copies, strict=True):  # no later step wrote over a kept state
+        np.testing.assert_array_equal(state, copy)
+        assert not state.flags.writeable
 
 
 def test_wheel_legged_env_keeps_its_own_motor_model():

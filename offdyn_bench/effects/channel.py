@@ -377,6 +377,8 @@ class ChannelEffects(gymnasium.Wrapper):
         self._obs_dtype = self.observation_space.dtype
         self._buffered = [stage for stage in self._stages if stage.buffer.size]
         self._state_parts: list[np.ndarray] = [np.zeros(0), *(stage.buffer.reshape(-1) for stage in self._buffered)]
+        self._state_parts_size = sum(part.size for part in self._state_parts)
+        self._state_rows: list[tuple[np.ndarray, np.ndarray]] = []
         self._row = 0  # this step's row of the noise block
         self._block_rows = 0 if self._noise.step_stages else -1  # rows in the block; -1: no noise
         # The full state vector given last (physics + buffers) and the physics part it was made
@@ -413,10 +415,22 @@ class ChannelEffects(gymnasium.Wrapper):
     def _with_channel_state(self, physics_state: np.ndarray) -> np.ndarray:
         parts = self._state_parts  # the buffers' flat views, kept: the buffers change in place
         parts[0] = physics_state
-        state = np.concatenate(parts)
-        state.flags.writeable = False  # as the physics states: one array is also the next prev_state
+        rows = self._state_rows
+        if not rows or rows[-1][0].size != physics_state.size + self._state_parts_size:
+            rows = self._new_state_rows(physics_state.size + self._state_parts_size)
+        destination, state = rows.pop()
+        np.concatenate(parts, out=destination)
         self._last_state = (physics_state, state)
         return state
+
+    def _new_state_rows(self, size: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        # As the physics states (offdyn_bench.envs): rows of a block, handed out as read-only views
+        # made in bulk, since one array is this step's state and the next step's prev_state.
+        block = np.empty((64, size))
+        read_only = block.view()
+        read_only.flags.writeable = False
+        self._state_rows = list(zip(block, read_only))
+        return self._state_rows
 
     def _observe(self, obs: np.ndarray, row: int) -> np.ndarray:
         for apply in self._obs_steps:
