@@ -24,6 +24,38 @@ import numpy as np
 import offdyn_bench  # noqa: F401  (registers the ids)
 
 ROBOTS = ("Hopper", "Walker2d", "HalfCheetah", "Ant")
+# Gymnasium-Robotics families (issue 16), measured on request (--robots AntMazeMedium AdroitDoor):
+# the vanilla env is the Gymnasium-Robotics one (AntMaze on the suite's map, so start and goal match).
+ROBOTICS_ROBOTS = ("AntMazeSmall", "AntMazeMedium", "AntMazeLarge", "AdroitPen", "AdroitDoor", "AdroitRelocate",
+                   "AdroitHammer")
+
+
+def robotics_cases(robot: str) -> list[tuple[str, str, dict]]:
+    """(label, env id, make kwargs) of a Gymnasium-Robotics robot: vanilla reference first."""
+    import contextlib
+    import io
+
+    with contextlib.redirect_stderr(io.StringIO()):  # Gymnasium-Robotics' release notice
+        import gymnasium_robotics
+    gymnasium.register_envs(gymnasium_robotics)
+    from offdyn_bench.robotics.adroit import ADROIT_TASKS
+    from offdyn_bench.robotics.mazes import get_maze
+
+    if robot.startswith("AntMaze"):
+        maze = get_maze(robot.removeprefix("AntMaze").lower())
+        vanilla_map = [[int(c) if c in "01" else c for c in row] for row in maze.source_map]
+        return [
+            ("vanilla (Gymnasium-Robotics)", maze.vanilla_env_id, {"maze_map": vanilla_map}),
+            ("no effects (source)", f"offdyn/{robot}-layout-blocked-source-v0", {}),
+            ("model effects (layout blocked)", f"offdyn/{robot}-layout-blocked-target-v0", {}),
+        ]
+    task = ADROIT_TASKS[robot]
+    return [
+        ("vanilla (Gymnasium-Robotics)", task.vanilla_env_id, {}),
+        ("no effects (source)", f"offdyn/{robot}-broken-joint-{task.broken_joint[0]}-hard-source-v0", {}),
+        ("model effects (broken joint hard)", f"offdyn/{robot}-broken-joint-{task.broken_joint[0]}-hard-target-v0", {}),
+        ("model effects (shrink finger hard)", f"offdyn/{robot}-shrink-finger-{task.shrunk_finger}-hard-target-v0", {}),
+    ]
 
 
 def cases(robot: str) -> list[tuple[str, str]]:
@@ -54,9 +86,15 @@ def steps_per_second(env: gymnasium.Env, actions: np.ndarray,
 
 def measure(robot: str, steps: int, rounds: int,
             clock: Callable[[], float] = time.perf_counter) -> list[tuple[str, float, float]]:
-    labelled = cases(robot)
-    kwargs = {} if robot == "HalfCheetah" else {"terminate_when_unhealthy": False}
-    envs = [gymnasium.make(env_id, max_episode_steps=1000, **kwargs) for _, env_id in labelled]
+    if robot in ROBOTICS_ROBOTS:
+        # AntMaze never ends early (a continuing task); Adroit envs do not terminate.
+        labelled_kwargs = robotics_cases(robot)
+        labelled = [(label, env_id) for label, env_id, _ in labelled_kwargs]
+        envs = [gymnasium.make(env_id, max_episode_steps=1000, **kwargs) for _, env_id, kwargs in labelled_kwargs]
+    else:
+        labelled = cases(robot)
+        kwargs = {} if robot == "HalfCheetah" else {"terminate_when_unhealthy": False}
+        envs = [gymnasium.make(env_id, max_episode_steps=1000, **kwargs) for _, env_id in labelled]
     actions = np.random.default_rng(0).uniform(-1, 1, size=(steps, *envs[0].action_space.shape))
     for env in envs:  # warm-up
         steps_per_second(env, actions[:500])
@@ -72,7 +110,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--rounds", type=int, default=40)
-    parser.add_argument("--robots", nargs="*", default=list(ROBOTS), choices=ROBOTS)
+    parser.add_argument("--robots", nargs="*", default=list(ROBOTS), choices=ROBOTS + ROBOTICS_ROBOTS)
     parser.add_argument("--clock", choices=CLOCKS, default="wall",
                         help="wall time (default) or this process's CPU time (for a shared machine)")
     args = parser.parse_args()

@@ -8,8 +8,9 @@ env, so that the suite's model effects and physics state in ``info`` apply to it
 other robot (``offdyn_bench.envs`` subclasses it like the locomotion envs).
 
 One difference in the model: every cell of the map has a block (``block_<row>_<col>``), free
-cells' blocks below the floor, out of reach. A layout shift (the ``maze_layout`` effect) raises and
-lowers blocks, so every layout of a maze compiles to a model of the same structure.
+cells' blocks below the floor with their contacts off. A layout shift (the ``maze_layout``
+effect) raises and lowers blocks, so every layout of a maze compiles to a model of the same
+bodies and geoms.
 
 ### Observation (a dict, as Gymnasium-Robotics)
 
@@ -54,7 +55,7 @@ from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from gymnasium.utils import EzPickle
 
-from offdyn_bench.effects.layout import BLOCK_NAME, block_name, lowered_z, raised_z
+from offdyn_bench.effects.layout import BLOCK_NAME, block_name, contact_bits, lowered_z, raised_z
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.robotics.mazes import (
     GOAL,
@@ -90,10 +91,12 @@ def maze_xml(maze_map: Sequence[str]) -> str:
     for i, row in enumerate(maze_map):
         for j, cell in enumerate(row):
             x, y = cell_center(i, j, rows, cols)
-            z = raised_z(half_height) if cell == WALL else lowered_z(half_height)
+            wall = cell == WALL
+            z = raised_z(half_height) if wall else lowered_z(half_height)
+            bits = str(contact_bits(wall))
             ElementTree.SubElement(worldbody, "geom", name=block_name(i, j), pos=f"{x} {y} {z}",
                                    size=f"{half} {half} {half_height}", type="box", material="",
-                                   contype="1", conaffinity="1", rgba="0.7 0.5 0.3 1.0")
+                                   contype=bits, conaffinity=bits, rgba="0.7 0.5 0.3 1.0")
     ElementTree.SubElement(worldbody, "site", name="target", pos=f"0 0 {half_height}",
                            size=f"{0.2 * CELL_SIZE}", rgba="1 0 0 0.7", type="sphere")
     return ElementTree.tostring(tree.getroot(), encoding="unicode")
