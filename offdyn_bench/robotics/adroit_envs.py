@@ -14,6 +14,8 @@ with contextlib.redirect_stderr(io.StringIO()):
     from gymnasium_robotics.envs.adroit_hand.adroit_door import AdroitHandDoorEnv
     from gymnasium_robotics.envs.adroit_hand.adroit_hammer import AdroitHandHammerEnv
     from gymnasium_robotics.envs.adroit_hand.adroit_pen import AdroitHandPenEnv
-    from gymnasium_robotics.envs.adroit_hand.adroit_relocate import AdroitHandRelocateEnv
+    from gymnasium_robotics.envs.adroit_hand.adroit_relocate import (
+        AdroitHandRelocateEnv,
+    )
 
 __all__ = ["AdroitHandDoorEnv", "AdroitHandHammerEnv", "AdroitHandPenEnv", "AdroitHandRelocateEnv"]

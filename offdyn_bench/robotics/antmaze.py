@@ -44,9 +44,9 @@ from __future__ import annotations
 import os
 import pathlib
 import tempfile
-import xml.etree.ElementTree as ElementTree
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
+from xml.etree import ElementTree
 
 import gymnasium
 import numpy as np
@@ -55,7 +55,13 @@ from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from gymnasium.utils import EzPickle
 
-from offdyn_bench.effects.layout import BLOCK_NAME, block_name, contact_bits, lowered_z, raised_z
+from offdyn_bench.effects.layout import (
+    BLOCK_NAME,
+    block_name,
+    contact_bits,
+    lowered_z,
+    raised_z,
+)
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.robotics.mazes import (
     GOAL,

@@ -328,7 +328,8 @@ def antmaze_pairs() -> list[tuple[str, str, str, tuple[MazeLayout], str]]:
         for reward_type in REWARD_TYPES:
             for name, layout in maze.layouts.items():
                 after = shortest_path_length(layout, start, goal)
+                description = (f"target {maze.name} maze, layout {name}: the source route is walled, the shortest "
+                               f"route is {after} cells (source: {before}); {reward_type} reward")
                 out.append((antmaze_robot(maze.name, reward_type), "layout", name, layout_effects(maze.name, name),
-                            f"target {maze.name} maze, layout {name}: the source route is walled, the shortest "
-                            f"route is {after} cells (source: {before}); {reward_type} reward"))
+                            description))
     return out

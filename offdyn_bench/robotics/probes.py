@@ -7,13 +7,21 @@ them, and ``python -m offdyn_bench.robotics.probes`` prints the table the README
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 
 import gymnasium
 import mujoco
 import numpy as np
 
-from offdyn_bench.robotics.mazes import GOAL, START, Cell, cells_marked, shortest_path_length, walls_of
+from offdyn_bench.robotics.mazes import (
+    GOAL,
+    START,
+    Cell,
+    cells_marked,
+    shortest_path_length,
+    walls_of,
+)
 
 # The thumb's and index finger's joints, palm outwards: what a thumb-index pinch can move.
 PINCH_JOINTS = ("THJ4", "THJ3", "THJ2", "THJ1", "THJ0", "FFJ3", "FFJ2", "FFJ1", "FFJ0")
@@ -123,7 +131,7 @@ def route_obstructions(env: gymnasium.Env, route: Sequence[Cell], height: float 
     torso = model.body("torso").id
     hits: list[str] = []
     geom = np.zeros(1, dtype=np.int32)
-    for a, b in zip(route, route[1:]):
+    for a, b in itertools.pairwise(route):
         start = np.array([*u.cell_xy(a), height])
         direction = np.array([*u.cell_xy(b), height]) - start
         length = float(np.linalg.norm(direction))

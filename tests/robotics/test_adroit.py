@@ -22,7 +22,13 @@ from offdyn_bench.robotics.adroit import (
     get_adroit_task,
     shrunk_finger,
 )
-from offdyn_bench.robotics.probes import FINGER_LENGTH_SITES, finger_length, joint_reach, pinch_gap, sweep_return
+from offdyn_bench.robotics.probes import (
+    FINGER_LENGTH_SITES,
+    finger_length,
+    joint_reach,
+    pinch_gap,
+    sweep_return,
+)
 from offdyn_bench.tasks import TASKS
 
 with contextlib.redirect_stderr(io.StringIO()):  # its release notice
