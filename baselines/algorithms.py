@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from types import MappingProxyType
 from typing import Any
 
-from baselines import cql, dap, darc, h2o, matl, online_sac
+from baselines import cql, dap, dara, darc, h2o, h2o_offline_source, matl, online_sac
 from baselines.method import Method, MethodContext
 from baselines.limits import config_problems
 from offdyn_bench.errors import InvalidParameterError, OffdynError, UnknownNameError
@@ -27,7 +27,10 @@ class Algorithm:
     build: Callable[[Any, MethodContext], Method]
     needs_dataset: bool
     track: str
-    """"reference" (SAC on source or target), "offline-target" or "online-target": the protocol's tracks."""
+    """"reference" (SAC on source or target) or one of the protocol's tracks (``offline-target``,
+    ``online-target``, ``offline-source-offline-target``, ``offline-source-online-target``)."""
+    needs_source_dataset: bool = False
+    """Trains on a fixed source dataset instead of the source simulator (the offline-source tracks)."""
 
 
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType({a.name: a for a in [
@@ -62,6 +65,14 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType({a.name: a for a in [
     Algorithm("fine-tuning", "TRPO fine-tuning of a trained simulator policy on the robot (--set init_run=DIR)",
               matl.default_config("fine-tuning"), matl.BUILDERS["fine-tuning"], needs_dataset=False,
               track="online-target"),
+    Algorithm("dara", "DARA: DARC's classifier reward correction on the source dataset, then CQL on source + "
+                      "target datasets (offline-source-offline-target)",
+              dara.Config, dara.build, needs_dataset=True, track="offline-source-offline-target",
+              needs_source_dataset=True),
+    Algorithm("h2o-offline-source", "H2O with the source dataset offline and one target step per ten updates "
+                                    "(offline-source-online-target)",
+              h2o_offline_source.Config, h2o_offline_source.build, needs_dataset=False,
+              track="offline-source-online-target", needs_source_dataset=True),
 ]})
 
 

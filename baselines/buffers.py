@@ -67,8 +67,13 @@ class DatasetSampler:
         self.generator = seed_generator(seed, self.device)
 
     def sample(self, batch_size: int) -> Batch:
+        return self.sample_with_index(batch_size)[0]
+
+    def sample_with_index(self, batch_size: int) -> tuple[Batch, torch.Tensor]:
+        """A minibatch and the dataset rows it came from, ``[seeds, batch]`` (the same draws as
+        :meth:`sample`): for a sampler over joined datasets, which rows came from which."""
         index = torch.randint(self.size, (self.n_seeds, batch_size), generator=self.generator, device=self.device)
-        return Batch(*(field[index] for field in self.data))
+        return Batch(*(field[index] for field in self.data)), index
 
     def state_dict(self, prefix: str) -> dict[str, torch.Tensor]:
         return {f"{prefix}.generator": self.generator.get_state()}
@@ -80,3 +85,8 @@ class DatasetSampler:
 def concat_batches(first: Batch, second: Batch) -> Batch:
     """Join two batches along the batch dimension (H2O's half-and-half batches)."""
     return Batch(*(torch.cat([a, b], dim=1) for a, b in zip(first, second)))
+
+
+def concat_datasets(first: Batch, second: Batch) -> Batch:
+    """Join two datasets (``[N, ...]`` fields) row-wise: ``first``'s rows, then ``second``'s (DARA's union)."""
+    return Batch(*(torch.cat([a, b], dim=0) for a, b in zip(first, second)))

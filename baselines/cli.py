@@ -14,13 +14,14 @@ from offdyn_bench.errors import OffdynError
 
 # The registry's names, for the help text (a test checks they match baselines.algorithms.ALGORITHMS).
 ALGORITHM_NAMES = ("sac-source", "sac-target", "cql", "darc", "darc-online", "h2o", "dap", "dap-u", "matl",
-                   "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning")
+                   "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning", "dara", "h2o-offline-source")
 
 
 def train_command(
     algo: str = typer.Argument(..., help="Algorithm: " + ", ".join(ALGORITHM_NAMES) + "."),
     task: str = typer.Option(..., "--task", help="Task pair, e.g. hopper-gravity-0.5."),
-    steps: int | None = typer.Option(None, "--steps", help="Environment steps (gradient updates for offline cql); "
+    steps: int | None = typer.Option(None, "--steps", help="Environment steps (gradient updates for cql, dara, "
+                                                           "h2o-offline-source); "
                                                            "or pass --budget."),
     out: Path = typer.Option(..., "--out", help="Run folder; run the same command again to resume it."),
     seed: int = typer.Option(0, "--seed", help="First training seed."),
@@ -28,6 +29,10 @@ def train_command(
     dataset: str | None = typer.Option(None, "--dataset",
                                        help="Target dataset: collect:<random|run folder>:<N>, an .npz path, "
                                             "or a Minari id."),
+    source_dataset: str | None = typer.Option(
+        None, "--source-dataset", help="Source dataset of the offline-source methods (dara, h2o-offline-source): "
+                                       "collect:<random|run folder>:<N> (collected in the source), an .npz path, or "
+                                       "a Minari id; default: the task's official source dataset."),
     overrides: list[str] = typer.Option([], "--set", help="Config override key=value, e.g. sac.batch_size=128 "
                                                           "(repeatable)."),
     eval_every: int | None = typer.Option(None, "--eval-every", help="Steps between target evaluations "
@@ -36,8 +41,10 @@ def train_command(
     checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Default steps/10."),
     threads: int = typer.Option(1, "--threads", help="torch threads (1: best on a small shared CPU)."),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
-    track: str | None = typer.Option(None, "--track", help="Protocol track, offline-target or online-target "
-                                                           "(default: the method's own); checked against the method."),
+    track: str | None = typer.Option(None, "--track", help="Protocol track: offline-target, online-target, "
+                                                           "offline-source-offline-target or "
+                                                           "offline-source-online-target (default: the method's "
+                                                           "own); checked against the method."),
     budget: str | None = typer.Option(None, "--budget", help="Protocol budget: lite (100k steps) or full (1M); "
                                                              "sets --steps."),
     device: str = typer.Option("cpu", "--device", help="cpu, cuda, cuda:N or auto (CUDA when there is one); "
@@ -55,6 +62,7 @@ def train_command(
         parsed[key.strip()] = value.strip()
     try:
         result = train(algo, task, steps=steps, out=out, seed=seed, n_seeds=n_seeds, dataset=dataset,
+                       source_dataset=source_dataset,
                        overrides=parsed, eval_every=eval_every, eval_episodes=eval_episodes,
                        checkpoint_every=checkpoint_every, threads=threads, progress=progress, track=track,
                        budget=budget, device=device)

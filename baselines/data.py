@@ -1,8 +1,10 @@
-"""Target datasets for the offline-target methods, behind one loader (:func:`load_dataset`).
+"""Target datasets for the offline-target methods, and source datasets for the offline-source
+tracks, behind one loader (:func:`load_dataset`).
 
 A dataset spec is one of:
 
-* ``collect:<policy>:<N>`` -- collected on the spot in the task's target: ``N`` transitions by
+* ``collect:<policy>:<N>`` -- collected on the spot in the task's target (the source, for a source
+  dataset: ``load_dataset(..., side="source")``): ``N`` transitions by
   ``<policy>``, which is ``random`` (uniform actions) or a training run folder (its latest
   checkpoint's deployed action, seed 0, plus Gaussian noise of std 0.1 in [-1, 1] action units so
   the data is sub-optimal and covers more than one trajectory, as a behaviour policy's would);
@@ -20,7 +22,7 @@ import zipfile
 import zlib
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import gymnasium
 import numpy as np
@@ -36,6 +38,7 @@ PER_STEP_VECTORS = ("observations", "actions", "next_observations")
 BEHAVIOUR_NOISE_STD = 0.1
 Policy = Callable[[np.ndarray], np.ndarray]
 """Observation (environment units) -> action (environment units)."""
+Side = Literal["source", "target"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -161,9 +164,16 @@ def collect_target_dataset(task: TaskPair, policy: Policy | str, n_transitions: 
                            ) -> TransitionDataset:
     """``n_transitions`` steps of ``policy`` in ``task``'s target (episode k reset with seed
     ``[seed, k]``). ``policy`` is a callable, ``"random"`` or a training run folder."""
+    return collect_dataset(task, policy, n_transitions, seed, side="target")
+
+
+def collect_dataset(task: TaskPair, policy: Policy | str, n_transitions: int, seed: int,
+                    side: Side = "target") -> TransitionDataset:
+    """:func:`collect_target_dataset` in ``task``'s ``side`` environment (``source`` for the
+    offline-source tracks' source data)."""
     if n_transitions <= 0:
         raise OffdynError(f"cannot collect {n_transitions} transitions; expected a positive number")
-    env = task.make("target")
+    env = task.make(side)
     rng = np.random.default_rng(seed)
     act = _resolve_policy(policy, env.action_space, rng)
     rows: dict[str, list[Any]] = {name: [] for name in ARRAYS}
@@ -216,18 +226,23 @@ def _resolve_policy(policy: Policy | str, action_space: gymnasium.spaces.Box, rn
     return noisy
 
 
-def load_dataset(spec: str, task: TaskPair, seed: int = 0) -> tuple[TransitionDataset, dict[str, Any]]:
+def load_dataset(spec: str, task: TaskPair, seed: int = 0, side: Side = "target"
+                 ) -> tuple[TransitionDataset, dict[str, Any]]:
     """The dataset named by ``spec`` (see the module docstring) and its provenance, checked against
-    ``task``'s spaces. The one place dataset kinds are told apart."""
+    ``task``'s spaces. The one place dataset kinds are told apart. ``side``: the environment a
+    ``collect:`` spec steps, and, for a Minari id, the side its data must come from (a source
+    dataset passed as a target one, or the reverse, is refused)."""
     if spec.startswith("collect:"):
         parts = spec.split(":")
         policy, count = ":".join(parts[1:-1]), parts[-1]
         if len(parts) < 3 or not policy or not count.isdigit():
             raise OffdynError(f"bad dataset spec {spec!r}; expected collect:<policy>:<N>, e.g. collect:random:5000 "
                               "or collect:runs/sac-source:5000")
-        dataset = collect_target_dataset(task, policy, int(count), seed)
+        dataset = collect_dataset(task, policy, int(count), seed, side)
         provenance = {"kind": "collected", "policy": policy, "n_transitions": int(count), "seed": seed,
                       "behaviour_noise_std": None if policy == "random" else BEHAVIOUR_NOISE_STD}
+        if side == "source":
+            provenance["side"] = "source"
     elif spec.endswith(".npz"):
         if not Path(spec).exists():
             raise OffdynError(f"dataset file {spec!r} does not exist")
@@ -236,6 +251,7 @@ def load_dataset(spec: str, task: TaskPair, seed: int = 0) -> tuple[TransitionDa
         dataset = TransitionDataset.from_npz(spec)
         provenance = {"kind": "npz", "path": str(Path(spec).resolve())}
     elif spec.count("/") >= 2:
+        _check_minari_side(spec, side)
         dataset, provenance = _load_minari(spec)
     else:
         raise OffdynError(f"unrecognised dataset {spec!r}; expected collect:<policy>:<N>, a path to an .npz "
@@ -245,6 +261,21 @@ def load_dataset(spec: str, task: TaskPair, seed: int = 0) -> tuple[TransitionDa
     env.close()
     provenance |= {"spec": spec, "task_version": task.version, "size": len(dataset), "sha256": dataset.sha256()}
     return dataset, provenance
+
+
+def _check_minari_side(dataset_id: str, side: Side) -> None:
+    """The suite's own ids say their side: ``source`` datasets come from the source, the other
+    qualities from the target."""
+    from offdyn_bench.datasets.recipes import parse_dataset_id
+
+    try:
+        _, quality, _ = parse_dataset_id(dataset_id)
+    except OffdynError:
+        return  # not one of the suite's ids: loading says what is wrong with it
+    if (quality == "source") != (side == "source"):
+        flag, other = ("--source-dataset", "--dataset") if side == "source" else ("--dataset", "--source-dataset")
+        raise OffdynError(f"{dataset_id} holds {'source' if quality == 'source' else 'target'} transitions; "
+                          f"{flag} expects {side} ones (pass it as {other})")
 
 
 def _load_minari(dataset_id: str) -> tuple[TransitionDataset, dict[str, Any]]:

@@ -23,6 +23,9 @@ class MethodContext:
     seeds: tuple[int, ...]
     target_data: Batch | None = None
     """The fixed target dataset (actions scaled to [-1, 1]), shared by all seeds; None if unused."""
+    source_data: Batch | None = None
+    """The fixed source dataset of the offline-source tracks (actions scaled to [-1, 1]), shared by
+    all seeds; None if unused."""
     device: str = "cpu"
     """Where the method keeps its networks, buffers and random streams ("cpu", "cuda", "cuda:1")."""
     task: str | None = None
@@ -94,3 +97,9 @@ def require_target_data(context: MethodContext, algo: str) -> Batch:
     if context.target_data is None:
         raise ValueError(f"{algo} needs a target dataset")
     return context.target_data
+
+
+def require_source_data(context: MethodContext, algo: str) -> Batch:
+    if context.source_data is None:
+        raise ValueError(f"{algo} needs a source dataset")
+    return context.source_data

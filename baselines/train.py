@@ -3,12 +3,13 @@
 ``train(algo, task, steps=..., out=...)`` writes into ``out``:
 
 * ``config.json`` -- everything that defines the run (algorithm, task and its version, seeds,
-  budget, dataset spec and provenance, the method's full config); written first;
+  budget, dataset spec and provenance, the source dataset's on the offline-source tracks, the
+  method's full config); written first;
 * ``metrics.jsonl`` -- the learning curve: every ``eval_every`` steps, per-seed mean return of the
   deployed (deterministic) policy over ``eval_episodes`` target episodes with fixed seeds;
 * ``checkpoints/step_<N>/`` -- safetensors state (networks, optimizers, buffers, random streams)
   with the sha256 of its files; the two newest are kept (:mod:`baselines.checkpoint`);
-* ``result.json`` -- the final per-seed, per-episode target returns, versions, task and dataset,
+* ``result.json`` -- the final per-seed, per-episode target returns, versions, task and dataset(s),
   and ``warnings`` (e.g. a budget too short for the method to make any update);
 * ``.lock`` -- locked while a process trains in the folder, so a second one is refused.
 
@@ -59,13 +60,16 @@ EVAL_SEED = 1_000_000
 """Evaluation episode e is reset with seed EVAL_SEED + e, for every method and training seed."""
 DATASET_SEED = 0
 """Seed of datasets collected on the spot (fixed so every training seed sees the same data)."""
+SOURCE_DATASET_SEED = 1
+"""Seed of source datasets collected on the spot (another stream than the target's)."""
 
 
 def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, seed: int = 0, n_seeds: int = 1,
           dataset: str | None = None, overrides: Mapping[str, str] | None = None,
           eval_every: int | None = None, eval_episodes: int = 10, checkpoint_every: int | None = None,
           threads: int | None = 1, progress: bool = True, stop_after: int | None = None,
-          track: str | None = None, budget: str | None = None, device: str = "cpu") -> dict[str, Any] | None:
+          track: str | None = None, budget: str | None = None, device: str = "cpu",
+          source_dataset: str | None = None) -> dict[str, Any] | None:
     """Train ``algo`` on ``task`` for ``steps`` steps with seeds ``seed .. seed + n_seeds - 1``.
 
     ``steps`` counts interaction-environment steps (gradient updates for offline CQL).
@@ -76,6 +80,10 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
     ``budget`` (``lite``/``full``) sets ``steps`` from the protocol; ``track`` is checked against
     the method (default: the method's own track). A method that needs a target dataset and gets
     none trains on the task's official dataset, installed and verified first.
+
+    ``source_dataset`` (same spec forms as ``dataset``; ``collect:`` steps the *source*) is the
+    fixed source data of the offline-source methods (``dara``, ``h2o-offline-source``); their
+    default is the task's official source dataset, installed and verified the same way.
 
     ``device`` (``cpu``, ``cuda``, ``cuda:N`` or ``auto``) holds the networks, buffers and random
     streams; a run is deterministic per device (CPU and CUDA draw different random numbers), and the
@@ -93,10 +101,14 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
     needs_dataset = method_spec.needs_dataset and getattr(config, "target_data", "offline") != "online"
     if not needs_dataset and dataset is not None:
         raise OffdynError(f"{algo} does not use a target dataset; drop --dataset")
+    if not method_spec.needs_source_dataset and source_dataset is not None:
+        raise OffdynError(f"{algo} trains in the source simulator and uses no source dataset; drop --source-dataset "
+                          "(the offline-source methods are dara and h2o-offline-source)")
     plan = resolve_run(algo, pair.name, steps=steps, track=track, budget=budget, dataset=dataset,
                        needs_dataset=needs_dataset, target_step_every=_target_step_every(method_spec, config),
+                       source_dataset=source_dataset, needs_source_dataset=method_spec.needs_source_dataset,
                        progress=progress, echo=lambda line: print(line, file=sys.stderr))
-    steps, dataset = plan.steps, plan.dataset
+    steps, dataset, source_dataset = plan.steps, plan.dataset, plan.source_dataset
     _check_arguments(steps=steps, n_seeds=n_seeds, eval_episodes=eval_episodes, eval_every=eval_every,
                      checkpoint_every=checkpoint_every, threads=threads)
     eval_every = eval_every or max(1, steps // 20)
@@ -106,6 +118,9 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
                 "seeds": list(seeds), "dataset": dataset, "eval_every": eval_every,
                 "eval_episodes": eval_episodes, "checkpoint_every": checkpoint_every,
                 "config": config_to_dict(config)}
+    if source_dataset is not None:
+        # Only offline-source runs carry the key, so older run folders still resume.
+        settings["source_dataset"] = source_dataset
     warnings = budget_warnings(algo, config, steps)
 
     # Everything below up to the lock only reads: bad input fails before anything is written.
@@ -123,14 +138,24 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
         if resuming:
             _check_same_dataset(out, dataset_provenance)
         target_data = data.to_batch(pair.make("target").action_space)
+    source_provenance = None
+    source_data = None
+    if source_dataset is not None:
+        data, source_provenance = load_dataset(source_dataset, pair, SOURCE_DATASET_SEED, side="source")
+        if resuming:
+            _check_same_dataset(out, source_provenance, key="source_dataset_provenance")
+        source_data = data.to_batch(pair.make("source").action_space)
     if threads:
         torch.set_num_threads(threads)
     probe = pair.make("target")
     context = MethodContext(observation_dim=int(np.prod(probe.observation_space.shape)),
                             action_dim=int(np.prod(probe.action_space.shape)), seeds=seeds,
-                            target_data=target_data, task=pair.name, device=device)
+                            target_data=target_data, source_data=source_data, task=pair.name, device=device)
     probe.close()
     method = method_spec.build(config, context)
+    if not plan.source_interaction_allowed and method.interaction == "source":
+        raise ProtocolError(f"{algo} steps the source simulator; the {plan.track} track allows only the fixed "
+                            "source dataset")
 
     with run_folder_lock(out):
         # Look again under the lock: another process may have started or finished a run here since.
@@ -138,10 +163,11 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
             raise OffdynError(f"--out {str(out)!r} changed while this run was being prepared (another process "
                               "started a run there); nothing was written")
         if not resuming:
+            extra = {"source_dataset_provenance": source_provenance} if source_provenance is not None else {}
             write_json_atomic(out / CONFIG_FILE, settings | {"task_spec": pair.to_dict(),
                                                              "dataset_provenance": dataset_provenance,
                                                              "track": plan.track, "budget": plan.budget,
-                                                             "device": device})
+                                                             "device": device} | extra)
         loop = _Loop(method, pair, seeds, out, plan.target_step_limit, device)
         start, notes = loop.restore() if resuming else (0, [])
         for message in warnings:
@@ -158,6 +184,8 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
                   "mean_return": float(final_returns.mean()), "versions": versions(),
                   "config": settings["config"], "warnings": warnings, "track": plan.track, "budget": plan.budget,
                   "target_steps_per_seed": loop.target_steps_taken(steps), "device": device}
+        if source_provenance is not None:
+            result["source_dataset"] = source_provenance
         write_json_atomic(out / RESULT_FILE, result)
     return result
 
@@ -266,14 +294,15 @@ def _check_out_dir(out: Path, settings: dict[str, Any]) -> bool:
     return True
 
 
-def _check_same_dataset(out: Path, provenance: dict[str, Any]) -> None:
-    stored = read_config(out).get("dataset_provenance")
+def _check_same_dataset(out: Path, provenance: dict[str, Any], key: str = "dataset_provenance") -> None:
+    stored = read_config(out).get(key)
     stored_sha = stored.get("sha256") if isinstance(stored, dict) else None
     if not isinstance(stored_sha, str):
-        raise OffdynError(f"{str(out / CONFIG_FILE)!r} is damaged (no dataset sha256 in dataset_provenance); "
+        raise OffdynError(f"{str(out / CONFIG_FILE)!r} is damaged (no dataset sha256 in {key}); "
                           "use a new --out folder")
     if stored_sha != provenance["sha256"]:
-        raise OffdynError(f"{out} was trained on another dataset (sha256 {stored_sha[:12]}..., now "
+        kind = "source dataset" if key == "source_dataset_provenance" else "dataset"
+        raise OffdynError(f"{out} was trained on another {kind} (sha256 {stored_sha[:12]}..., now "
                           f"{provenance['sha256'][:12]}...); use a new --out folder")
 
 

@@ -1,7 +1,7 @@
 """The fixed evaluation protocol (``PROTOCOL.md`` at the top of the repository is its prose).
 
 * :mod:`~offdyn_bench.protocol.definition`: the version, tracks, budgets, evaluation episodes and
-  seeds, the core suite, the official dataset of a task on a track;
+  seeds, the core suite, the official target and source datasets of a task on a track;
 * :mod:`~offdyn_bench.protocol.references`: reference scores with provenance
   (``assets/reference_scores.json``) and the normalized score;
 * :mod:`~offdyn_bench.protocol.statistics`: IQM, stratified-bootstrap intervals, optimality gap,
@@ -30,6 +30,7 @@ from offdyn_bench.protocol.definition import (
     get_budget,
     get_track,
     official_dataset,
+    official_source_dataset,
     track_of_method,
 )
 from offdyn_bench.protocol.references import (
@@ -47,6 +48,6 @@ __all__ = [
     "BUDGETS", "CORE_SUITE", "EPISODE_SEEDS", "EVAL_EPISODES", "MIN_SEEDS", "PROTOCOL_VERSION",
     "REFERENCE_FILE", "REFERENCE_METHODS", "TRACKS", "Budget", "ProtocolError", "ReferenceScore", "Track",
     "check_method_on_track", "get_budget", "get_track", "has_references", "normalized_score",
-    "official_dataset", "record_oracle_reference", "record_random_reference", "reference_pair",
+    "official_dataset", "official_source_dataset", "record_oracle_reference", "record_random_reference", "reference_pair",
     "reference_scores", "track_of_method",
 ]

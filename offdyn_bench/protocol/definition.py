@@ -20,6 +20,7 @@ class ProtocolError(OffdynError):
 
 
 TargetData = Literal["dataset", "online"]
+SourceData = Literal["simulator", "dataset"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +37,11 @@ class Track:
     """The suite's reference implementations that belong on this track."""
     dataset_quality: str | None
     """Quality of the task's official target dataset on this track (None: the track has none)."""
+    source_data: SourceData = "simulator"
+    """``simulator``: the source simulator, stepped freely within the budget; ``dataset``: only the
+    task's fixed source dataset (no source interaction; steps are gradient updates)."""
+    source_dataset_quality: str | None = None
+    """Quality of the task's official source dataset (None: the track uses the simulator)."""
 
     def target_step_budget(self, source_steps: int) -> int:
         return int(source_steps * self.target_steps_per_source_step)
@@ -53,6 +59,19 @@ TRACKS: Mapping[str, Track] = MappingProxyType({
         target_data="online", target_steps_per_source_step=0.1,
         methods=("darc-online", "matl", "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning"),
         dataset_quality=None),
+    # ODRL's (Lyu et al. 2024) offline-source settings: no source simulator, a fixed source dataset.
+    "offline-source-offline-target": Track(
+        name="offline-source-offline-target",
+        description="the task's fixed source dataset plus its fixed target dataset; no interaction with either "
+                    "system (steps are gradient updates)",
+        target_data="dataset", target_steps_per_source_step=0.0, methods=("dara",),
+        dataset_quality="source-policy", source_data="dataset", source_dataset_quality="source"),
+    "offline-source-online-target": Track(
+        name="offline-source-online-target",
+        description="the task's fixed source dataset plus one target step per ten gradient updates, counted by "
+                    "the trainer; no source simulator",
+        target_data="online", target_steps_per_source_step=0.1, methods=("h2o-offline-source",),
+        dataset_quality=None, source_data="dataset", source_dataset_quality="source"),
 })
 
 REFERENCE_METHODS: Mapping[str, str] = MappingProxyType({
@@ -68,7 +87,8 @@ REFERENCE_METHODS: Mapping[str, str] = MappingProxyType({
 class Budget:
     name: str
     source_steps: int
-    """Source-simulator steps (gradient updates for a method that trains on data only, e.g. CQL)."""
+    """Source-simulator steps (gradient updates for a method that trains on data only, e.g. CQL, and
+    on the offline-source tracks)."""
     description: str
 
 
@@ -151,6 +171,21 @@ def official_dataset(task: str, track: str) -> str | None:
     # no source-policy dataset.
     if quality not in qualities_of(pair) and "human-operator" in qualities_of(pair):
         quality = "human-operator"
+    return dataset_id(pair, quality)
+
+
+def official_source_dataset(task: str, track: str) -> str | None:
+    """The id of ``task``'s official source dataset on ``track`` (None: the track uses the source
+    simulator, or the task has no source dataset, e.g. the wheel-legged robot)."""
+    from offdyn_bench.datasets.recipes import dataset_id, qualities_of
+    from offdyn_bench.tasks import get_task
+
+    quality = get_track(track).source_dataset_quality
+    if quality is None:
+        return None
+    pair = get_task(task)
+    if quality not in qualities_of(pair):
+        return None
     return dataset_id(pair, quality)
 
 
