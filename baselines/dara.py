@@ -45,7 +45,12 @@ from baselines import cql
 from baselines.buffers import DatasetSampler, concat_datasets
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
 from baselines.limits import FINITE, Limit, integer
-from baselines.method import MethodContext, deploy_actions, require_source_data, require_target_data
+from baselines.method import (
+    MethodContext,
+    deploy_actions,
+    require_source_data,
+    require_target_data,
+)
 from baselines.sac import Batch, Metrics, SACConfig, sac_update
 
 
@@ -70,9 +75,9 @@ class Config:
 
     def budget_warnings(self, algo: str, steps: int) -> list[str]:
         if steps <= self.classifier_steps:
-            return [f"--steps {steps} is not above classifier_steps={self.classifier_steps}: this {algo} run only "
-                    "trains its classifiers and deploys its untrained initial policy; the minimum useful budget is "
-                    f"more than {self.classifier_steps} steps (or lower it with --set classifier_steps=N)"]
+            return [(f"--steps {steps} is not above classifier_steps={self.classifier_steps}: this {algo} run only "
+                     "trains its classifiers and deploys its untrained initial policy; the minimum useful budget is "
+                     f"more than {self.classifier_steps} steps (or lower it with --set classifier_steps=N)")]
         return []
 
 

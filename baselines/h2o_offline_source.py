@@ -39,7 +39,12 @@ import torch
 from baselines.buffers import DatasetSampler, ReplayBuffer
 from baselines.h2o import DynamicsAwareCritic, DynamicsAwareSettings
 from baselines.limits import Limit, integer
-from baselines.method import MethodContext, deploy_actions, explore_actions, require_source_data
+from baselines.method import (
+    MethodContext,
+    deploy_actions,
+    explore_actions,
+    require_source_data,
+)
 from baselines.sac import Metrics, SACAgent
 
 

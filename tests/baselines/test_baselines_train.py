@@ -27,8 +27,10 @@ TINY = {"sac.hidden_sizes": "[32, 32]", "sac.batch_size": "32", "random_steps": 
 def _tiny(algo: str) -> dict[str, str]:
     if algo in ("cql",):
         return {k: v for k, v in TINY.items() if k.startswith("sac.")}
-    if algo in ("sac-source", "sac-target", "h2o"):
+    if algo in ("sac-source", "sac-target", "h2o", "h2o-offline-source"):
         return {k: v for k, v in TINY.items() if k != "warmup_steps"}
+    if algo == "dara":  # offline: its classifier-only phase instead of random steps
+        return {k: v for k, v in TINY.items() if k.startswith("sac.")} | {"classifier_steps": "40"}
     if ALGORITHMS[algo].default_config().__module__ == "baselines.matl":  # TRPO-based: no SAC settings
         return {"trpo.hidden_sizes": "[32, 32]", "rollout_steps": "8"}  # 80 steps: one outer iteration
     return TINY
@@ -42,8 +44,10 @@ def _needs(algo: str, dataset) -> str | None:
 @pytest.mark.parametrize("algo", [a for a in ALGORITHMS if a not in ("matl-f", "fine-tuning")])
 def test_every_method_runs_on_a_hopper_pair(tmp_path, algo, hopper_dataset):
     out = tmp_path / "run"
+    # The offline-source methods get the same small random dataset as their source data.
+    source = str(hopper_dataset) if ALGORITHMS[algo].needs_source_dataset else None
     result = train(algo, "hopper-gravity-0.5", steps=80, out=out, dataset=_needs(algo, hopper_dataset),
-                   overrides=_tiny(algo), eval_every=40, eval_episodes=1, progress=False)
+                   source_dataset=source, overrides=_tiny(algo), eval_every=40, eval_episodes=1, progress=False)
     assert {p.name for p in out.iterdir()} == {"config.json", "metrics.jsonl", "result.json", "checkpoints", ".lock"}
     assert [p.name for p in (out / "checkpoints").iterdir()] and all(
         {f.name for f in p.iterdir()} == {"state.safetensors", "trainer.json", "checksums.json"}
