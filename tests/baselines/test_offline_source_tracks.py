@@ -141,9 +141,9 @@ def test_a_method_is_refused_on_a_track_it_does_not_fit(algo, track, message):
 
 
 def _plan(algo: str, **kwargs):
-    settings = dict(steps=None, track=None, budget="lite", dataset=None, needs_dataset=False, target_step_every=None,
-                    source_dataset="collect:random:100", needs_source_dataset=True, progress=False,
-                    echo=lambda line: None)
+    settings = {"steps": None, "track": None, "budget": "lite", "dataset": None, "needs_dataset": False, "target_step_every": None,
+                    "source_dataset": "collect:random:100", "needs_source_dataset": True, "progress": False,
+                    "echo": lambda line: None}
     return resolve_run(algo, "hopper-gravity-0.5", **(settings | kwargs))
 
 
@@ -212,8 +212,8 @@ def test_a_run_records_its_track_datasets_and_target_steps(tmp_path, algo, datas
 
 @pytest.mark.parametrize("algo", ["dara", "h2o-offline-source"])
 def test_a_killed_run_resumes_to_the_same_result(tmp_path, algo, datasets):
-    kwargs = dict(steps=120, overrides=TINY[algo], eval_every=30, eval_episodes=2, checkpoint_every=40, progress=False,
-                  seed=3, n_seeds=2) | _data_kwargs(algo, datasets)
+    kwargs = {"steps": 120, "overrides": TINY[algo], "eval_every": 30, "eval_episodes": 2, "checkpoint_every": 40, "progress": False,
+                  "seed": 3, "n_seeds": 2} | _data_kwargs(algo, datasets)
     whole = train(algo, TASK, out=tmp_path / "whole", **kwargs)
     assert train(algo, TASK, out=tmp_path / "cut", stop_after=70, **kwargs) is None
     resumed = train(algo, TASK, out=tmp_path / "cut", **kwargs)
@@ -224,8 +224,8 @@ def test_a_killed_run_resumes_to_the_same_result(tmp_path, algo, datasets):
 
 def test_a_resumed_run_refuses_another_source_dataset(tmp_path, datasets):
     source, target = datasets
-    kwargs = dict(steps=60, overrides=TINY["dara"], eval_episodes=1, checkpoint_every=30, progress=False,
-                  dataset=str(target))
+    kwargs = {"steps": 60, "overrides": TINY["dara"], "eval_episodes": 1, "checkpoint_every": 30, "progress": False,
+                  "dataset": str(target)}
     assert train("dara", TASK, out=tmp_path / "run", source_dataset=str(source), stop_after=30, **kwargs) is None
     other = tmp_path / "other.npz"
     data = TransitionDataset.from_npz(source)
@@ -235,15 +235,15 @@ def test_a_resumed_run_refuses_another_source_dataset(tmp_path, datasets):
 
 
 @pytest.mark.parametrize("algo, kwargs, message", [
-    ("h2o", {"source_dataset": "x.npz", "dataset": "y.npz"}, "h2o trains in the source simulator and uses no source "
-                                                             "dataset; drop --source-dataset"),
+    ("h2o", {"source_dataset": "x.npz", "dataset": "y.npz"}, ("h2o trains in the source simulator and uses no source "
+                                                             "dataset; drop --source-dataset")),
     ("sac-source", {"source_dataset": "x.npz"}, "drop --source-dataset"),
     ("h2o-offline-source", {"source_dataset": "x.npz", "dataset": "y.npz"}, "does not use a target dataset"),
-    ("dara", {"dataset": "y.npz"}, r"dara needs a source dataset and invertedpendulum-gravity-3.0 has no official one "
+    ("dara", {"dataset": "y.npz"}, (r"dara needs a source dataset and invertedpendulum-gravity-3.0 has no official one "
                                    r"\(offdyn/invertedpendulum-gravity-3p0/source-v0 is not in the manifest\): pass "
-                                   "--source-dataset"),
-    ("dara", {"source_dataset": "missing.npz", "dataset": "collect:random:50"}, "dataset file 'missing.npz' does not "
-                                                                                  "exist"),
+                                   "--source-dataset")),
+    ("dara", {"source_dataset": "missing.npz", "dataset": "collect:random:50"}, ("dataset file 'missing.npz' does not "
+                                                                                  "exist")),
 ])
 def test_bad_source_dataset_arguments_fail_before_anything_is_written(tmp_path, algo, kwargs, message):
     with pytest.raises(OffdynError, match=message):
@@ -270,8 +270,8 @@ def test_collected_source_data_comes_from_the_source():
 
 
 @pytest.mark.parametrize("ident, side, message", [
-    ("offdyn/hopper-gravity-0p5/source-policy-v0", "source", "holds target transitions; --source-dataset expects "
-                                                             "source ones"),
+    ("offdyn/hopper-gravity-0p5/source-policy-v0", "source", ("holds target transitions; --source-dataset expects "
+                                                             "source ones")),
     ("offdyn/hopper-gravity-0p5/source-v0", "target", "holds source transitions; --dataset expects target ones"),
 ])
 def test_a_dataset_id_of_the_other_side_is_refused(ident, side, message):
@@ -302,7 +302,7 @@ def test_dara_without_its_correction_is_cql_on_the_union_of_both_datasets(tmp_pa
     union = tmp_path / "union.npz"
     parts = [TransitionDataset.from_npz(target), TransitionDataset.from_npz(source)]  # DARA's order: target first
     TransitionDataset(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in ARRAYS}).save_npz(union)
-    common = dict(steps=60, eval_every=60, eval_episodes=2, progress=False, n_seeds=2)
+    common = {"steps": 60, "eval_every": 60, "eval_episodes": 2, "progress": False, "n_seeds": 2}
     cql_run = train("cql", TASK, out=tmp_path / "cql", dataset=str(union), overrides=SMALL_SAC, track="offline-target",
                     **common)
     off = train("dara", TASK, out=tmp_path / "off", dataset=str(target), source_dataset=str(source),
