@@ -273,7 +273,7 @@ def test_an_env_without_effects_steps_exactly_like_vanilla_gymnasium(robot):
     suite = make_robot_env(robot)
     assert suite.dt == vanilla.dt
     vanilla_obs, _ = vanilla.reset(seed=3)
-    suite_obs, info = suite.reset(seed=3)
+    suite_obs, _ = suite.reset(seed=3)
     np.testing.assert_array_equal(suite_obs, vanilla_obs)
     size = mujoco.mj_stateSize(vanilla.model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
     rng = np.random.default_rng(0)

@@ -35,7 +35,7 @@ from offdyn_bench.datasets.manifest import (
     write_manifest,
 )
 from offdyn_bench.datasets.policies import Policy, PolicyError, UniformRandomPolicy, load_policy, policy_sha256, read_sidecar
-from offdyn_bench.datasets.recipes import REPO_ROOT, Recipe, RecipeError, dynamics_label
+from offdyn_bench.datasets.recipes import REPO_ROOT, SKILL_LEVELS, Recipe, RecipeError, dynamics_label
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TaskPair
 from offdyn_bench.versions import versions
@@ -122,7 +122,7 @@ def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Poli
         raise PolicyError(f"{recipe.dataset_id}: policy {behaviour.policy} maps {policy.observation_dim} -> "
                           f"{policy.action_dim}, the task's target env has {obs_dim} -> {space.shape[0]}")
     pinned = dataclasses.replace(recipe, behaviour=dataclasses.replace(behaviour, policy_sha256=digest))
-    provenance = {"kind": "policy", "policy": behaviour.policy, "policy_sha256": digest,
+    provenance = {"kind": behaviour.kind, "policy": behaviour.policy, "policy_sha256": digest,
                   "trained_on": sidecar.get("trained_on"), "training": sidecar.get("training"),
                   "score": sidecar.get("score"), "action_noise_std": behaviour.action_noise_std,
                   "action_noise_seed": [recipe.seed, 2]}
@@ -143,7 +143,7 @@ def check_buildable(recipe: Recipe) -> None:
     step), so a caller can fail before it shows any progress."""
     pair = recipe.check_task()
     behaviour = recipe.behaviour
-    if behaviour.kind == "policy":
+    if behaviour.kind in ("policy", "skill-mixture"):
         path = repo_path(str(behaviour.policy))
         if not path.is_file():
             raise _missing_behaviour(recipe, pair)
@@ -182,6 +182,44 @@ def _oracle(recipe: Recipe, fresh: bool) -> tuple[pathlib.Path | None, Recipe]:
     if fresh and path.is_file():
         return path, dataclasses.replace(recipe, oracle_policy_sha256=policy_sha256(path))
     return None, recipe
+
+
+SKILL_LEVEL_INFO = "behaviour_level"
+"""The infos column of a ``skill-mixture`` dataset that says which of SKILL_LEVELS acted (its index)."""
+
+
+def _collect_skill_mixture(recipe: Recipe, env: gymnasium.Env, policy: Policy,
+                           on_progress: Callable[[int], None] | None) -> tuple[list, list[dict[str, Any]]]:
+    """Equal shares of the transitions from each of :data:`SKILL_LEVELS`, one after the other
+    (episode seeds run on across levels), each transition labelled with its level in the infos;
+    and per level what it was and how it scored (mean return of its complete episodes)."""
+    space = env.action_space
+    assert isinstance(space, gymnasium.spaces.Box)
+    episodes: list = []
+    levels: list[dict[str, Any]] = []
+    share, extra = divmod(recipe.num_transitions, len(SKILL_LEVELS))
+    for index, (name, noise_std) in enumerate(SKILL_LEVELS):
+        if noise_std is None:
+            rng_seed = [recipe.seed, 1]
+            actor: Policy = UniformRandomPolicy(space.low, space.high,
+                                                seed=np.random.SeedSequence(rng_seed).generate_state(1)[0])
+            noise, described = None, {"actions": "uniform random", "rng_seed": rng_seed}
+        else:
+            noise_seed = [recipe.seed, 2, index]
+            actor = policy
+            noise = gaussian_action_noise(noise_std, int(np.random.SeedSequence(noise_seed).generate_state(1)[0]))
+            described = {"actions": "behaviour policy", "action_noise_std": noise_std, "action_noise_seed": noise_seed}
+        count = share + (1 if index < extra else 0)
+        collected = list(collect_transitions(env, actor, num_transitions=count, seed=recipe.seed,
+                                             action_noise=noise, on_step=on_progress, first_episode=len(episodes)))
+        episodes += [dataclasses.replace(e, infos={**e.infos, SKILL_LEVEL_INFO: [float(index)] * (len(e.rewards) + 1)})
+                     for e in collected]
+        # Every episode but the last ended on its own; the last one did only if it terminated.
+        complete = [float(np.sum(e.rewards)) for e in collected[:-1]]
+        complete += [float(np.sum(collected[-1].rewards))] if collected[-1].terminations[-1] else []
+        levels.append({"level": name, "index": index, **described, "transitions": count, "episodes": len(collected),
+                       "mean_return_of_complete_episodes": float(np.mean(complete)) if complete else None})
+    return episodes, levels
 
 
 def reference_scores(recipe: Recipe, pair: TaskPair, oracle_path: pathlib.Path | None) -> dict[str, Any]:
@@ -234,8 +272,8 @@ def _write_with_minari(recipe: Recipe, pair: TaskPair, episodes: list, scores: d
             author=AUTHOR,
             author_email=AUTHOR_EMAIL,
             code_permalink="offdyn_bench/datasets/build.py",
-            description=(f"{recipe.quality} data collected in the target of task {pair.name} v{pair.version} "
-                         f"({pair.description}); env_spec is the source, eval_env_spec the target."),
+            description=(f"{recipe.quality} data collected in the {recipe.collect_in} of task {pair.name} "
+                         f"v{pair.version} ({pair.description}); env_spec is the source, eval_env_spec the target."),
             data_format=recipe.data_format,
             requirements=[f"mujoco=={versions()['mujoco']}", f"gymnasium=={versions()['gymnasium']}"],
             **refs,
@@ -274,11 +312,16 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
     pair = recipe.check_task()
     env = pair.make(recipe.collect_in)
     policy, recipe, behaviour = _behaviour(recipe, pair, env)
-    noise_seed = np.random.SeedSequence([recipe.seed, 2]).generate_state(1)[0]
-    episodes = list(collect_transitions(env, policy, num_transitions=recipe.num_transitions, seed=recipe.seed,
-                                        action_noise=gaussian_action_noise(recipe.behaviour.action_noise_std,
-                                                                           int(noise_seed)),
-                                        on_step=on_progress))
+    if recipe.behaviour.kind == "skill-mixture":
+        for per_level in ("action_noise_std", "action_noise_seed"):  # each level has its own: see "levels"
+            behaviour.pop(per_level)
+        episodes, behaviour["levels"] = _collect_skill_mixture(recipe, env, policy, on_progress)
+    else:
+        noise_seed = np.random.SeedSequence([recipe.seed, 2]).generate_state(1)[0]
+        episodes = list(collect_transitions(env, policy, num_transitions=recipe.num_transitions, seed=recipe.seed,
+                                            action_noise=gaussian_action_noise(recipe.behaviour.action_noise_std,
+                                                                               int(noise_seed)),
+                                            on_step=on_progress))
     env.close()
     oracle_path, recipe = _oracle(recipe, fresh=recorded is None or recorded.files is None)
     scores = reference_scores(recipe, pair, oracle_path)

@@ -124,11 +124,13 @@ def gaussian_action_noise(std: float, seed: int) -> Callable[[np.ndarray], np.nd
 
 def collect_transitions(env: gymnasium.Env, policy: Policy, *, num_transitions: int, seed: int,
                         action_noise: Callable[[np.ndarray], np.ndarray] | None = None,
-                        on_step: Callable[[int], None] | None = None) -> Iterator[EpisodeBuffer]:
+                        on_step: Callable[[int], None] | None = None,
+                        first_episode: int = 0) -> Iterator[EpisodeBuffer]:
     """Episodes until exactly ``num_transitions`` are in; the last one is cut (and marked
-    truncated) when the budget ends inside it."""
+    truncated) when the budget ends inside it. Episode ``i`` (counted from ``first_episode``,
+    which lets several behaviours fill one dataset) resets with seed ``seed + i``."""
     total = 0
-    episode = 0
+    episode = first_episode
     while total < num_transitions:
         buffer = run_episode(env, policy, seed=seed + episode, max_steps=num_transitions - total,
                              action_noise=action_noise, episode_id=episode)

@@ -24,8 +24,10 @@ from typing import Any, Literal
 from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.tasks import TASKS, TaskPair, get_task
 
-Quality = Literal["random", "source-policy", "human-operator"]
-QUALITIES: tuple[Quality, ...] = ("random", "source-policy", "human-operator")
+Quality = Literal["random", "source-policy", "human-operator", "source"]
+QUALITIES: tuple[Quality, ...] = ("random", "source-policy", "human-operator", "source")
+"""``random``, ``source-policy`` and ``human-operator`` are collected in the task's target;
+``source`` in its source (the offline-source tracks' data, see :data:`SKILL_LEVELS`)."""
 # The wheel-legged robot's target data is a person's, as on H2O's real robot; it has no SAC
 # behaviour policy. Every other robot has no human operator.
 HUMAN_OPERATOR_ROBOTS = ("WheelLegged",)
@@ -41,7 +43,18 @@ POLICIES_DIR = ASSETS_DIR / "policies"
 # same size so that quality is the only thing that differs between the two.
 DEFAULT_TRANSITIONS: Mapping[Quality, int] = {"random": 20_000, "source-policy": 20_000,
                                                # H2O recorded 100,000 human-controlled transitions per task.
-                                               "human-operator": 100_000}
+                                               "human-operator": 100_000,
+                                               # Source data is the plentiful side: each of the three skill
+                                               # levels as large as a whole target dataset.
+                                               "source": 60_000}
+SKILL_LEVELS: tuple[tuple[str, float | None], ...] = (("expert", 0.1), ("medium", 0.3), ("random", None))
+"""The ``skill-mixture`` behaviour of ``source`` datasets, D4RL-style: equal thirds of the
+transitions from the task's sac-source policy with Gaussian action noise of std 0.1 (``expert``:
+the ``source-policy`` datasets' own setting) and 0.3 (``medium``: the same policy made clumsy; its
+return lands between the expert's and random's on all four robots, where 0.6 put Ant's below
+random), then uniform-random actions (``None``). The suite ships one behaviour policy per source dynamics, not
+checkpoints at several training stages, so noise sets the skill; the measured return of each level
+is in the dataset's metadata. Changing the levels is a new dataset version."""
 # Gaussian noise (in action-space units, clipped to the box) on the behaviour policy's
 # deterministic action: DAP "samples" its source policy in the target; a fixed-std noise keeps
 # that sampling reproducible and independent of how a checkpoint parameterizes its std.
@@ -65,11 +78,11 @@ def task_slug(task_name: str) -> str:
 
 
 def qualities_of(pair: TaskPair) -> tuple[Quality, ...]:
-    """The dataset qualities a pair has: ``random`` and ``source-policy``, or, for the wheel-legged
-    robot, ``random`` and ``human-operator``."""
+    """The dataset qualities a pair has: ``random``, ``source-policy`` and ``source``, or, for the
+    wheel-legged robot, ``random`` and ``human-operator``."""
     if pair.robot in HUMAN_OPERATOR_ROBOTS:
         return ("random", "human-operator")
-    return ("random", "source-policy")
+    return ("random", "source-policy", "source")
 
 
 def _check_quality(pair: TaskPair, quality: str) -> None:
@@ -125,19 +138,20 @@ def sac_policy_path(pair: TaskPair, role: Literal["sac-source", "sac-target"]) -
     return f"assets/policies/{role}/{dynamics_label(pair, side)}.safetensors"
 
 
-BEHAVIOUR_KINDS = ("uniform-random", "policy", "human-operator")
+BEHAVIOUR_KINDS = ("uniform-random", "policy", "human-operator", "skill-mixture")
 
 
 @dataclasses.dataclass(frozen=True)
 class Behaviour:
     """What acts in the target while the data is collected.
 
-    ``kind`` is ``uniform-random``, ``policy``, or ``human-operator`` (the wheel-legged robot's
+    ``kind`` is ``uniform-random``, ``policy``, ``human-operator`` (the wheel-legged robot's
     balancing controller steered by an imperfect person, seeded from the recipe:
-    ``offdyn_bench/wheel_legged/operator.py``).
+    ``offdyn_bench/wheel_legged/operator.py``) or ``skill-mixture`` (``policy`` at each of
+    :data:`SKILL_LEVELS`; ``action_noise_std`` is then the expert level's).
     """
 
-    kind: Literal["uniform-random", "policy", "human-operator"]
+    kind: Literal["uniform-random", "policy", "human-operator", "skill-mixture"]
     policy: str | None = None
     policy_sha256: str | None = None
     action_noise_std: float = 0.0
@@ -147,8 +161,8 @@ class Behaviour:
             raise UnknownNameError("behaviour kind", self.kind, BEHAVIOUR_KINDS)
         if self.kind == "human-operator" and self.policy is not None:
             raise RecipeError("a 'human-operator' behaviour is the operator in code; it takes no policy file")
-        if self.kind == "policy" and not self.policy:
-            raise RecipeError("a 'policy' behaviour needs the path of its .safetensors file")
+        if self.kind in ("policy", "skill-mixture") and not self.policy:
+            raise RecipeError(f"a {self.kind!r} behaviour needs the path of its .safetensors file")
         if not self.action_noise_std >= 0:
             raise RecipeError(f"action_noise_std must be >= 0, got {self.action_noise_std!r}")
 
@@ -165,7 +179,7 @@ class Recipe:
     behaviour: Behaviour
     num_transitions: int
     seed: int = DEFAULT_SEED
-    collect_in: Literal["target"] = "target"
+    collect_in: Literal["target", "source"] = "target"
     reference_episodes: int = REFERENCE_EPISODES
     reference_seed: int = REFERENCE_SEED
     oracle_policy: str | None = None
@@ -177,8 +191,13 @@ class Recipe:
             raise RecipeError(f"{self.dataset_id}: num_transitions must be >= 1, got {self.num_transitions}")
         if self.reference_episodes < 1:
             raise RecipeError(f"{self.dataset_id}: reference_episodes must be >= 1, got {self.reference_episodes}")
-        if self.collect_in != "target":
-            raise RecipeError(f"{self.dataset_id}: datasets are collected in the target, got {self.collect_in!r}")
+        expected_side = "source" if self.quality == "source" else "target"
+        if self.collect_in != expected_side:
+            raise RecipeError(f"{self.dataset_id}: {self.quality!r} datasets are collected in the {expected_side}, "
+                              f"got collect_in={self.collect_in!r}")
+        if (self.quality == "source") != (self.behaviour.kind == "skill-mixture"):
+            raise RecipeError(f"{self.dataset_id}: the 'source' quality and only it has the 'skill-mixture' "
+                              f"behaviour, got quality {self.quality!r} with behaviour {self.behaviour.kind!r}")
         if self.data_format not in DATA_FORMATS:
             raise RecipeError(f"{self.dataset_id}: data_format {self.data_format!r}; expected one of "
                               f"{DATA_FORMATS} (Minari storages checked to build byte-identically)")
@@ -274,6 +293,9 @@ def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,
         behaviour = Behaviour(kind="uniform-random")
     elif quality == "human-operator":
         behaviour = Behaviour(kind="human-operator")
+    elif quality == "source":
+        behaviour = Behaviour(kind="skill-mixture", policy=sac_policy_path(pair, "sac-source"),
+                              action_noise_std=SKILL_LEVELS[0][1])  # type: ignore[arg-type]
     else:
         behaviour = Behaviour(kind="policy", policy=sac_policy_path(pair, "sac-source"),
                               action_noise_std=DEFAULT_ACTION_NOISE_STD)
@@ -283,6 +305,7 @@ def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,
         behaviour=behaviour,
         num_transitions=DEFAULT_TRANSITIONS[quality] if num_transitions is None else num_transitions,  # type: ignore[index]
         seed=seed, oracle_policy=sac_policy_path(pair, "sac-target"),
+        collect_in="source" if quality == "source" else "target",
     )
 
 
@@ -311,4 +334,9 @@ def default_tasks() -> list[TaskPair]:
 
 
 def default_recipes() -> list[Recipe]:
-    return [default_recipe(pair, quality) for pair in default_tasks() for quality in qualities_of(pair)]
+    """Every quality of every default task; ``source`` data for the protocol's core suite only
+    (the offline-source tracks run there); any other task's builds on demand."""
+    from offdyn_bench.protocol.definition import CORE_SUITE
+
+    return [default_recipe(pair, quality) for pair in default_tasks() for quality in qualities_of(pair)
+            if quality != "source" or pair.name in CORE_SUITE]
