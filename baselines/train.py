@@ -102,8 +102,8 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
     if not needs_dataset and dataset is not None:
         raise OffdynError(f"{algo} does not use a target dataset; drop --dataset")
     if not method_spec.needs_source_dataset and source_dataset is not None:
-        raise OffdynError(f"{algo} trains in the source simulator and uses no source dataset; drop --source-dataset "
-                          "(the offline-source methods are dara and h2o-offline-source)")
+        raise OffdynError(f"{algo} uses no source dataset; drop --source-dataset (the offline-source methods, "
+                          "dara and h2o-offline-source, do)")
     plan = resolve_run(algo, pair.name, steps=steps, track=track, budget=budget, dataset=dataset,
                        needs_dataset=needs_dataset, target_step_every=_target_step_every(method_spec, config),
                        source_dataset=source_dataset, needs_source_dataset=method_spec.needs_source_dataset,

@@ -235,8 +235,8 @@ def test_a_resumed_run_refuses_another_source_dataset(tmp_path, datasets):
 
 
 @pytest.mark.parametrize("algo, kwargs, message", [
-    ("h2o", {"source_dataset": "x.npz", "dataset": "y.npz"}, ("h2o trains in the source simulator and uses no source "
-                                                             "dataset; drop --source-dataset")),
+    ("h2o", {"source_dataset": "x.npz", "dataset": "y.npz"}, "h2o uses no source dataset; drop --source-dataset"),
+    ("cql", {"source_dataset": "x.npz", "dataset": "y.npz"}, "cql uses no source dataset; drop --source-dataset"),
     ("sac-source", {"source_dataset": "x.npz"}, "drop --source-dataset"),
     ("h2o-offline-source", {"source_dataset": "x.npz", "dataset": "y.npz"}, "does not use a target dataset"),
     ("dara", {"dataset": "y.npz"}, (r"dara needs a source dataset and invertedpendulum-gravity-3.0 has no official one "
