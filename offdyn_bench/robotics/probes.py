@@ -141,6 +141,40 @@ def route_obstructions(env: gymnasium.Env, route: Sequence[Cell], height: float 
     return list(dict.fromkeys(hits))  # a block across the route stops the walk into it and out of it
 
 
+TOW_FORCE = 60.0  # N on the torso (about 2.5 body weights: enough to drag a limp Ant along the floor)
+TOW_DAMPING = 20.0  # N s/m: keeps it from overshooting the turns
+
+
+def towed_return(env: gymnasium.Env, route: Sequence[Cell], seed: int = 0,
+                 steps: int | None = None) -> tuple[float, bool]:
+    """(return, success at the end) of a scripted route follower: the Ant, its actions zero, is
+    towed by a horizontal force on its torso towards the next cell centre of ``route`` (the goal
+    itself for the last), as a waypoint controller would walk it. Walls stop it where they stand,
+    so it measures whether ``route`` is open in the compiled maze, with the task's own reward."""
+    u = env.unwrapped
+    env.reset(seed=seed)
+    torso = u.model.body("torso").id
+    waypoints = [u.cell_xy(c) for c in route[1:-1]] + [u.goal.copy()]
+    action = np.zeros(env.action_space.shape)
+    total, success, k = 0.0, False, 0
+    try:
+        for _ in range(steps or u.maze.episode_steps):
+            xy = u.data.qpos[:2]
+            while k < len(waypoints) - 1 and np.linalg.norm(waypoints[k] - xy) < 1.0:
+                k += 1
+            heading = waypoints[k] - xy
+            u.data.xfrc_applied[torso, :2] = (TOW_FORCE * heading / max(float(np.linalg.norm(heading)), 1e-6)
+                                              - TOW_DAMPING * u.data.qvel[:2])
+            _, reward, terminated, truncated, info = env.step(action)
+            total += float(reward)
+            success = bool(info["success"])
+            if terminated or truncated:
+                break
+    finally:
+        u.data.xfrc_applied[torso] = 0.0
+    return total, success
+
+
 def _table() -> None:  # pragma: no cover - prints the README's measurement
     from offdyn_bench.robotics.mazes import MAZES
     from offdyn_bench.tasks import TASKS
@@ -153,7 +187,10 @@ def _table() -> None:  # pragma: no cover - prints the README's measurement
             start, goal = route[0], route[-1]
             layout = MAZES[maze.name].layout(pair.level)
             print(f"{name}: shortest route {len(route) - 1} -> {shortest_path_length(layout, start, goal)} cells; "
-                  f"source route blocked by {route_obstructions(source, route)} -> {route_obstructions(target, route)}")
+                  f"source route blocked by {route_obstructions(source, route)} -> {route_obstructions(target, route)}; "
+                  f"towed along the source route: return {towed_return(source, route)[0]:.1f} -> "
+                  f"{towed_return(target, route)[0]:.1f}; along the target's route: "
+                  f"{towed_return(target, source_route(layout))[0]:.1f}")
         elif pair.shift == "broken-joint":
             joint = pair.target_effects[0].target
             print(f"{name}: {joint} reach {joint_reach(source, joint):.3f} -> {joint_reach(target, joint):.3f} rad; "

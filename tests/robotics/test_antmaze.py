@@ -27,7 +27,7 @@ from offdyn_bench.robotics.mazes import (
     shortest_route_cells,
     walls_of,
 )
-from offdyn_bench.robotics.probes import route_obstructions, source_route
+from offdyn_bench.robotics.probes import route_obstructions, source_route, towed_return
 from offdyn_bench.tasks import TASKS
 
 with contextlib.redirect_stderr(io.StringIO()):  # its release notice
@@ -167,3 +167,28 @@ def test_reset_options_place_start_and_goal_in_free_cells_only():
         env.reset(seed=0, options={"goal_cell": "g"})
     with pytest.raises(OffdynError, match="the goal lies in the start cell"):
         env.reset(seed=0, options={"goal_cell": (1, 1)})
+
+
+def _towed_returns(maze: str, layout: str) -> tuple[float, float, float]:
+    """Towed along the source route on source and target, and along the target's own route on the target."""
+    spec = get_maze(maze)
+    robot = antmaze_robot(maze, "sparse")
+    source, target = make_robot_env(robot), make_robot_env(robot, layout_effects(maze, layout))
+    route = source_route(spec.source_map)
+    return (towed_return(source, route)[0], towed_return(target, route)[0],
+            towed_return(target, source_route(spec.layout(layout)))[0])
+
+
+@pytest.mark.parametrize("maze, layout", [("small", "middle-gap"), ("medium", "blocked"), ("large", "z-shape")])
+def test_a_source_route_follower_reaches_the_goal_only_in_the_source(maze, layout):
+    """The scripted follower of the source route scores on the source and nothing on the target
+    (a wall stops it); following the target's own route, it reaches the goal there too."""
+    on_source, on_target, target_route = _towed_returns(maze, layout)
+    assert on_source > 100 and on_target == 0.0 and target_route > 100
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("maze, layout", LAYOUTS)
+def test_every_layout_stops_the_source_route_follower_and_is_solvable(maze, layout):
+    on_source, on_target, target_route = _towed_returns(maze, layout)
+    assert on_source > 100 and on_target == 0.0 and target_route > 100
