@@ -72,7 +72,8 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
           source_dataset: str | None = None) -> dict[str, Any] | None:
     """Train ``algo`` on ``task`` for ``steps`` steps with seeds ``seed .. seed + n_seeds - 1``.
 
-    ``steps`` counts interaction-environment steps (gradient updates for offline CQL).
+    ``steps`` counts interaction-environment steps (gradient updates for offline CQL and the
+    offline-source methods).
     ``eval_every`` defaults to steps/20, ``checkpoint_every`` to steps/10. ``stop_after`` stops the
     run after that many steps without finishing it, as a kill would (for tests). Returns the
     result, or None when stopped early.

@@ -32,7 +32,8 @@ class Track:
     target_data: TargetData
     """``dataset``: only the task's fixed target dataset; ``online``: target steps within a budget."""
     target_steps_per_source_step: float
-    """The target-step budget as a fraction of the source-step budget (0 on offline tracks)."""
+    """The target-step budget as a fraction of the step budget (source steps; gradient updates on the
+    offline-source tracks); 0 on offline-target tracks."""
     methods: tuple[str, ...]
     """The suite's reference implementations that belong on this track."""
     dataset_quality: str | None

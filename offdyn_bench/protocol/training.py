@@ -59,9 +59,6 @@ def resolve_run(algo: str, task: str, *, steps: int | None, track: str | None, b
         track = track_of_method(algo) if algo in {m for t in TRACKS.values() for m in t.methods} else None
     limit = None
     own_track = track is not None and algo in get_track(track).methods
-    if own_track and get_track(track).source_data == "dataset" and not needs_source_dataset:
-        raise ProtocolError(f"{algo} uses no source dataset; the {track} track gives a method only the fixed "
-                            "source dataset, no source simulator")
     if own_track:
         if get_track(track).target_data == "online":
             limit = get_track(track).target_step_budget(steps)

@@ -234,6 +234,28 @@ def test_a_resumed_run_refuses_another_source_dataset(tmp_path, datasets):
         train("dara", TASK, out=tmp_path / "run", source_dataset=str(other), **kwargs)
 
 
+def test_a_resumed_run_refuses_a_source_file_whose_content_changed(tmp_path, datasets):
+    source, target = datasets
+    copy = tmp_path / "source.npz"
+    copy.write_bytes(source.read_bytes())
+    kwargs = {"steps": 60, "overrides": TINY["dara"], "eval_episodes": 1, "checkpoint_every": 30, "progress": False,
+                  "dataset": str(target), "source_dataset": str(copy)}
+    assert train("dara", TASK, out=tmp_path / "run", stop_after=30, **kwargs) is None
+    data = TransitionDataset.from_npz(source)
+    TransitionDataset(**{name: getattr(data, name)[:500] for name in ARRAYS}).save_npz(copy)
+    with pytest.raises(OffdynError, match="was trained on another source dataset"):
+        train("dara", TASK, out=tmp_path / "run", **kwargs)
+
+
+def test_a_track_method_that_would_step_the_source_simulator_is_refused(tmp_path, datasets, monkeypatch):
+    monkeypatch.setattr(h2o_offline_source.H2OOfflineSource, "interaction", "source")
+    with pytest.raises(ProtocolError, match="h2o-offline-source steps the source simulator; the "
+                                            "offline-source-online-target track allows only the fixed source dataset"):
+        train("h2o-offline-source", TASK, steps=20, out=tmp_path / "run", source_dataset=str(datasets[0]),
+              progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 @pytest.mark.parametrize("algo, kwargs, message", [
     ("h2o", {"source_dataset": "x.npz", "dataset": "y.npz"}, "h2o uses no source dataset; drop --source-dataset"),
     ("cql", {"source_dataset": "x.npz", "dataset": "y.npz"}, "cql uses no source dataset; drop --source-dataset"),
