@@ -240,8 +240,7 @@ class AntMazeEnv(AntEnv):
         return False
 
     def _update_goal(self, achieved_goal: np.ndarray) -> None:
-        if not (self.continuing_task and self.reset_target
-                and np.linalg.norm(achieved_goal - self.goal) <= GOAL_RADIUS and len(self.goal_cells) > 1):
+        if not (self.continuing_task and self.reset_target and np.linalg.norm(achieved_goal - self.goal) <= GOAL_RADIUS):
             return
         while np.linalg.norm(achieved_goal - self.goal) <= GOAL_RADIUS:
             goal = self.cell_xy(self.goal_cells[self.np_random.integers(low=0, high=len(self.goal_cells))])

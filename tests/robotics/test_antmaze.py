@@ -192,3 +192,17 @@ def test_a_source_route_follower_reaches_the_goal_only_in_the_source(maze, layou
 def test_every_layout_stops_the_source_route_follower_and_is_solvable(maze, layout):
     on_source, on_target, target_route = _towed_returns(maze, layout)
     assert on_source > 100 and on_target == 0.0 and target_route > 100
+
+
+def test_an_episodic_task_ends_at_the_goal_and_a_continuing_one_can_move_it():
+    route = source_route(get_maze("small").source_map)
+    episodic = make_robot_env("AntMazeSmall", continuing_task=False)
+    total, success = towed_return(episodic, route)
+    assert success and total == 1.0  # terminated on the first step within 0.45 m of the goal
+    moving = make_robot_env("AntMazeSmall", reset_target=True)
+    first_goal = moving.reset(seed=0)[0]["desired_goal"]
+    towed_return(moving, route, seed=0, steps=300)  # reaches the goal after about 170 steps
+    goal = moving.unwrapped.goal
+    assert not np.array_equal(goal, first_goal)  # a new goal was drawn (in the one goal cell, new noise)
+    site = moving.unwrapped.model.site("target").id
+    np.testing.assert_array_equal(moving.unwrapped.model.site_pos[site][:2], goal)
