@@ -123,3 +123,15 @@ def test_an_unknown_joint_finger_level_or_task_is_refused():
         get_adroit_task("AdroitKettle")
     with pytest.raises(UnknownNameError, match="unknown joint 'THJ9'"):
         make_robot_env("AdroitDoor", [{"kind": "joint_range", "target": "THJ9", "scale": 0.5}])
+
+
+def test_tasks_show_names_the_broken_joint_and_the_shrunk_segments():
+    from typer.testing import CliRunner
+
+    from offdyn_bench.cli import app
+
+    result = CliRunner().invoke(app, ["tasks", "show", "adroitrelocate-broken-joint-thumb-flex-hard"])
+    assert result.exit_code == 0, result.output
+    assert "jnt_range[THJ3]: [0 1.309] -> [0 0.2618]" in result.output
+    result = CliRunner().invoke(app, ["tasks", "show", "adroitpen-shrink-finger-index-medium"])
+    assert all(f"body_mass[{segment}]" in result.output for segment in FINGERS["index"].segments)

@@ -206,3 +206,15 @@ def test_an_episodic_task_ends_at_the_goal_and_a_continuing_one_can_move_it():
     assert not np.array_equal(goal, first_goal)  # a new goal was drawn (in the one goal cell, new noise)
     site = moving.unwrapped.model.site("target").id
     np.testing.assert_array_equal(moving.unwrapped.model.site_pos[site][:2], goal)
+
+
+def test_tasks_show_names_the_cells_a_layout_changes():
+    from typer.testing import CliRunner
+
+    from offdyn_bench.cli import app
+
+    result = CliRunner().invoke(app, ["tasks", "show", "antmazemedium-layout-blocked"])
+    assert result.exit_code == 0, result.output
+    assert "geom_pos[block_3_3]: [-2 2 -3] -> [-2 2 1]" in result.output
+    assert "geom_contype[block_3_3]: 0 -> 1" in result.output
+    assert "maze_layout(8x8 cells: 11111111 / 10011001 / 10010001 / 11010111" in result.output
