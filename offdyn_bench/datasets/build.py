@@ -1,5 +1,5 @@
-"""Build a dataset from its recipe: collect in the target, write with Minari, hash, archive,
-install.
+"""Build a dataset from its recipe: collect in the target (in the source for ``source`` data),
+write with Minari, hash, archive, install.
 
 The bytes are a function of the recipe, the code and the platform's libraries only: fixed seeds,
 a deterministic behaviour, no time, host or absolute path in the metadata, and archives with

@@ -1,4 +1,5 @@
-"""Rollouts in the target: episodes for a dataset, and returns for reference scores.
+"""Rollouts: episodes for a dataset (in the target, or in the source for ``source`` data), and
+returns for reference scores.
 
 Episode ``i`` of a dataset resets with seed ``recipe.seed + i``; uniform-random actions and the
 behaviour policy's action noise each draw from their own generator seeded from the recipe.

@@ -141,7 +141,7 @@ def _rebuild(dataset_id: str, root: pathlib.Path, manifest: Manifest, force: boo
         raise DatasetUnavailableError(f"cannot rebuild {dataset_id}: {reason}. {no_remote}") from error
     verified = entry.files is not None
     echo(f"{dataset_id}: no remote configured ({REMOTE_ENV} unset); rebuilding it from its recipe "
-         f"({recipe.num_transitions} transitions in the target of {recipe.task})"
+         f"({recipe.num_transitions} transitions in the {recipe.collect_in} of {recipe.task})"
          + (", then checking every file against the manifest's sha256" if verified else
             "; the manifest records no hashes for it, so the result cannot be verified"))
     try:

@@ -143,7 +143,7 @@ BEHAVIOUR_KINDS = ("uniform-random", "policy", "human-operator", "skill-mixture"
 
 @dataclasses.dataclass(frozen=True)
 class Behaviour:
-    """What acts in the target while the data is collected.
+    """What acts while the data is collected (in the target; in the source for ``source`` data).
 
     ``kind`` is ``uniform-random``, ``policy``, ``human-operator`` (the wheel-legged robot's
     balancing controller steered by an imperfect person, seeded from the recipe:
