@@ -99,7 +99,7 @@ _ROBOT_LIST = [
 _ROBOT_LIST += [
     Robot(name=antmaze_robot(maze.name, reward), max_episode_steps=maze.episode_steps,
           env_class=f"offdyn_bench.robotics.antmaze:{antmaze_robot(maze.name, reward)}Env",
-          reference_env_id=maze.vanilla_env_id.replace("-v5", f"{'Dense' if reward == 'dense' else ''}-v5"))
+          reference_env_id=maze.vanilla_id(reward))
     for maze in MAZES.values() for reward in REWARD_TYPES
 ]
 _ROBOT_LIST += [Robot(name=task.robot, env_class=task.env_class, max_episode_steps=ADROIT_EPISODE_STEPS,

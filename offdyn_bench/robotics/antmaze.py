@@ -82,7 +82,6 @@ CELL_SIZE = 4.0  # m: Gymnasium-Robotics' maze_size_scaling for AntMaze
 WALL_HEIGHT = 0.5  # in cells: Gymnasium-Robotics' maze_height (2 m walls)
 GOAL_RADIUS = 0.45  # m: within it the goal is reached
 POSITION_NOISE = 0.25  # in cells: the start and goal offsets' range
-REWARD_TYPES = ("sparse", "dense")
 
 
 def maze_xml(maze_map: Sequence[str]) -> str:
@@ -261,7 +260,7 @@ class AntMazeEnv(AntEnv):
 def _maze_env(maze: Maze, reward_type: str) -> type[AntMazeEnv]:
     suffix = "Dense" if reward_type == "dense" else ""
     name = f"AntMaze{maze.name.capitalize()}{suffix}Env"
-    vanilla = maze.vanilla_env_id.replace("-v5", f"{suffix}-v5")
+    vanilla = maze.vanilla_id(reward_type)
     cls = type(name, (AntMazeEnv,), {
         "maze": maze, "reward_type": reward_type, "vanilla_env_id": vanilla, "__module__": __name__,
         "__doc__": f"The {maze.name} AntMaze, {reward_type} reward: {vanilla} with D4RL's start and goal cells.",

@@ -44,6 +44,10 @@ class Maze:
     episode_steps: int
     """As Gymnasium-Robotics registers the vanilla env."""
 
+    def vanilla_id(self, reward_type: str) -> str:
+        """The Gymnasium-Robotics id with these walls and ``reward_type``: ``AntMaze_MediumDense-v5``."""
+        return self.vanilla_env_id.replace("-v5", "Dense-v5") if reward_type == "dense" else self.vanilla_env_id
+
     def layout(self, name: str) -> MazeMap:
         if name not in self.layouts:
             raise UnknownNameError(f"layout of the {self.name} maze", name, self.layouts)

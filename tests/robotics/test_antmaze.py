@@ -46,7 +46,7 @@ def _flat(obs: dict) -> np.ndarray:
 def test_the_source_is_gymnasium_robotics_antmaze_step_for_step(maze, reward_type):
     """Same map, seed and actions: the suite's env and AntMaze_*-v5 give identical observations and rewards."""
     spec = get_maze(maze)
-    vanilla_id = spec.vanilla_env_id.replace("-v5", "Dense-v5" if reward_type == "dense" else "-v5")
+    vanilla_id = spec.vanilla_id(reward_type)
     vanilla_map = [[int(c) if c in "01" else c for c in row] for row in spec.source_map]
     vanilla = gymnasium.make(vanilla_id, maze_map=vanilla_map)
     ours = make_robot_env(antmaze_robot(maze, reward_type))
