@@ -131,7 +131,8 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
             # submitted beside the track named here.
             if option is None:
                 raise SubmissionError(f"the evaluations under {runs_dir} name no track (a reference method); "
-                                      "pass --track offline-target or --track online-target")
+                                      "pass --track with the track they are submitted beside, e.g. "
+                                      "--track offline-target")
             continue
         if option is not None and option != first[field]:
             raise SubmissionError(f"--{field} {option} but the evaluations under {runs_dir} were made on "

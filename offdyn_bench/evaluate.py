@@ -43,6 +43,7 @@ from offdyn_bench.protocol.definition import (
     get_budget,
     get_track,
     official_dataset,
+    official_source_dataset,
     track_of_method,
 )
 
@@ -82,6 +83,8 @@ class LoadedAgents:
     steps: int | None = None
     dataset: dict[str, Any] | None = None
     train_command: str | None = None
+    source_dataset: dict[str, Any] | None = None
+    """Provenance of the source dataset of an offline-source run (None for every other run)."""
 
 
 def _sha256_arrays(arrays: Sequence[np.ndarray]) -> str:
@@ -162,10 +165,12 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
     train_command = (f"offdyn-bench train {config['algo']} --task {config['task']} --steps {config['steps']} "
                      f"--seed {config['seeds'][0]} --n-seeds {len(config['seeds'])}"
                      + (f" --dataset {config['dataset']}" if config.get("dataset") else "")
+                     + (f" --source-dataset {config['source_dataset']}" if config.get("source_dataset") else "")
                      + f" --out {run_dir}")
     dataset = result.get("dataset") or config.get("dataset_provenance")
+    source_dataset = result.get("source_dataset") or config.get("source_dataset_provenance")
     return LoadedAgents(agents=agents, method=config["algo"], task=pair.name, steps=int(config["steps"]),
-                        dataset=dataset, train_command=train_command,
+                        dataset=dataset, train_command=train_command, source_dataset=source_dataset,
                         description={"kind": "run", "path": str(run_dir), "checkpoint": checkpoint.name,
                                      "policy_sha256": hashes,
                                      # The command above omits --set overrides: config.json holds
@@ -272,6 +277,12 @@ def _conformance(loaded: LoadedAgents, task: str, track: str | None, budget: str
         used = loaded.dataset.get("dataset_id") or loaded.dataset.get("spec")
         if official is not None and used != official:
             notes.append(f"trained on dataset {used!r}; the track's official dataset is {official!r}")
+    if track is not None and loaded.source_dataset is not None:
+        official_source = official_source_dataset(task, track)
+        used = loaded.source_dataset.get("dataset_id") or loaded.source_dataset.get("spec")
+        if official_source is not None and used != official_source:
+            notes.append(f"trained on source dataset {used!r}; the track's official source dataset is "
+                         f"{official_source!r}")
     return track, budget, notes
 
 
@@ -345,6 +356,8 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
         "versions": versions(),
         "command": "offdyn-bench evaluate " + shlex.join(_command_args(agent, task, track, budget, episodes, side)),
     }
+    if loaded.source_dataset is not None:  # offline-source runs only: other records keep their keys
+        record["source_dataset"] = loaded.source_dataset
     if target is not None:
         _write_atomic(target, record)
     return record

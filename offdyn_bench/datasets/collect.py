@@ -109,11 +109,20 @@ def run_episode(env: gymnasium.Env, policy: Policy, *, seed: int, max_steps: int
             break
     return EpisodeBuffer(
         id=episode_id, seed=seed,
-        observations=np.stack(observations), actions=np.stack(actions),
+        observations=stack_observations(observations), actions=np.stack(actions),
         rewards=np.asarray(rewards, dtype=np.float64),
         terminations=np.asarray(terminations), truncations=np.asarray(truncations),
         infos=infos.to_arrays(),
     )
+
+
+def stack_observations(observations: list) -> np.ndarray | dict:
+    """One array per episode, or for a ``Dict`` observation space (AntMaze's goal-conditioned
+    observations) a dict of them, key by key, as Minari stores dict observations."""
+    first = observations[0]
+    if isinstance(first, dict):
+        return {key: stack_observations([observation[key] for observation in observations]) for key in first}
+    return np.stack(observations)
 
 
 def gaussian_action_noise(std: float, seed: int) -> Callable[[np.ndarray], np.ndarray] | None:

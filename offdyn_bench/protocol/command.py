@@ -52,7 +52,9 @@ def evaluate_command(
     agent: str = typer.Option(..., "--agent", help="A run folder of `offdyn-bench train`, or package.module:factory "
                                                    "returning an object with act(observation) -> action."),
     task: str | None = typer.Option(None, "--task", help="Task pair (default: the run's task)."),
-    track: str | None = typer.Option(None, "--track", help="offline-target or online-target (default: the "
+    track: str | None = typer.Option(None, "--track", help="offline-target, online-target, "
+                                                           "offline-source-offline-target or "
+                                                           "offline-source-online-target (default: the "
                                                            "method's track)."),
     budget: str | None = typer.Option(None, "--budget", help="full or lite (default: read from the run's steps)."),
     seeds: str | None = typer.Option(None, "--seeds", help="Training seeds of a module:factory agent, e.g. 0,1,2,3,4."),

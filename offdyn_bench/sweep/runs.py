@@ -39,6 +39,8 @@ class Run:
     evaluation_episodes: int
     official_dataset: str | None = None
     """The track's official dataset the run trains on (None: no dataset, or the spec's own)."""
+    official_source_dataset: str | None = None
+    """On the offline-source tracks, the task's official source dataset the run trains on."""
     settings: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     """What ``train`` records in ``config.json`` that decides the result (algo, task, steps,
     seeds, dataset, the full method config): a folder holding other settings is another run."""
@@ -80,7 +82,7 @@ def expand(spec: SweepSpec) -> list[Run]:
     """The spec's runs, in method, task, seed order; a :class:`SpecError` listing every refusal."""
     from baselines.algorithms import apply_overrides, config_to_dict, get_algorithm
     from offdyn_bench.errors import OffdynError
-    from offdyn_bench.protocol import get_budget, get_track, official_dataset
+    from offdyn_bench.protocol import get_budget, get_track, official_dataset, official_source_dataset
     from offdyn_bench.protocol.training import resolve_run
     from offdyn_bench.tasks import get_task
 
@@ -95,6 +97,7 @@ def expand(spec: SweepSpec) -> list[Run]:
         except OffdynError as error:
             raise SpecError(f"{where}: budget: {error}") from None
     needs_dataset: dict[str, bool] = {}
+    needs_source_dataset: dict[str, bool] = {}
     configs: dict[str, dict[str, Any]] = {}
     target_step_every: dict[str, int | None] = {}
     for method in spec.methods:
@@ -108,6 +111,7 @@ def expand(spec: SweepSpec) -> list[Run]:
             raise SpecError(f"{where}: overrides.{method}: {error}") from None
         # The trainer's rule (baselines/train.py): DARC with target_data=online takes no dataset.
         needs_dataset[method] = algorithm.needs_dataset and getattr(config, "target_data", "offline") != "online"
+        needs_source_dataset[method] = algorithm.needs_source_dataset
         configs[method] = config_to_dict(config)
         # The trainer's rule too: an online method steps the target once per target_step_every steps.
         target_step_every[method] = (int(config.target_step_every)
@@ -151,6 +155,7 @@ def expand(spec: SweepSpec) -> list[Run]:
                 folder = root / RUNS_DIR / method / task / seed_label(seeds)
                 dataset = official_dataset(task, spec.track) if needs_dataset[method] and spec.dataset is None \
                     else (spec.dataset if needs_dataset[method] else None)
+                source = official_source_dataset(task, spec.track) if needs_source_dataset[method] else None
                 log = root / LOGS_DIR / method / task / f"{seed_label(seeds)}.log"
                 runs.append(Run(method=method, task=task, seeds=seeds, folder=folder, log=log,
                                 train_args=tuple(_train_args(spec, method, task, seeds, folder,
@@ -158,8 +163,10 @@ def expand(spec: SweepSpec) -> list[Run]:
                                 evaluate_args=tuple(_evaluate_args(spec, folder)),
                                 steps=steps, evaluation_episodes=spec.evaluation_episodes,
                                 official_dataset=dataset if spec.dataset is None else None,
+                                official_source_dataset=source,
                                 settings={"algo": method, "task": task, "steps": steps, "seeds": list(seeds),
-                                          "dataset": dataset, "config": configs[method]}))
+                                          "dataset": dataset, "config": configs[method]}
+                                | ({"source_dataset": source} if source is not None else {})))
     return runs
 
 
@@ -191,7 +198,8 @@ def _evaluate_args(spec: SweepSpec, folder: Path) -> list[str]:
 def official_datasets(runs: Sequence[Run]) -> list[str]:
     """Official datasets the runs train on, each once: the sweep installs them before any run
     starts, so concurrent runs never install one dataset at the same time."""
-    return list(dict.fromkeys(run.official_dataset for run in runs if run.official_dataset is not None))
+    return list(dict.fromkeys(dataset for run in runs for dataset in (run.official_dataset, run.official_source_dataset)
+                              if dataset is not None))
 
 
 def finished_evaluation(run: Run) -> dict[str, Any] | None:

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.protocol.definition import TRACKS
 
 CORE = "core"
 """``tasks: core`` stands for the protocol's core suite."""
@@ -174,7 +175,7 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
 
     track = data["track"]
     if not isinstance(track, str):
-        raise fail("track", "a track name: offline-target or online-target")
+        raise fail("track", "a track name: " + ", ".join(TRACKS))
 
     budget, steps = data.get("budget"), data.get("steps")
     if (budget is None) == (steps is None):

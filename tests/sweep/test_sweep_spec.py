@@ -196,3 +196,25 @@ def test_an_online_method_over_the_tracks_target_steps_is_refused_at_expansion(t
     assert "darc-online would take 60 target steps per seed; the online-target track allows 30" in line
     line = _refused(tmp_path, tiny_spec(tmp_path / "out", methods=["darc"], overrides={"darc": {"target_data": "online"}}))
     assert "darc steps the target environment; the offline-target track allows no target interaction" in line
+
+
+def test_offline_source_runs_install_both_official_datasets_first(tmp_path, tiny_spec, write_spec):
+    """A sweep on the offline-source tracks installs each task's source dataset as well as its target
+    one before any run starts, and records it as the run's setting, as train does."""
+    from offdyn_bench.sweep.runs import official_datasets
+
+    for track, method, target in (("offline-source-offline-target", "dara", "/source-policy-v0"),
+                                  ("offline-source-online-target", "h2o-offline-source", None)):
+        spec = parse_spec(tiny_spec(tmp_path / track, methods=[method], tasks=["hopper-gravity-0.5"], seeds=2,
+                                    steps=None, budget="lite", overrides={}, track=track))
+        runs = expand(spec)
+        assert [run.official_source_dataset for run in runs] == ["offdyn/hopper-gravity-0p5/source-v0"] * 2
+        assert all(run.settings["source_dataset"] == run.official_source_dataset for run in runs)
+        expected = (["offdyn/hopper-gravity-0p5" + target] if target else []) + ["offdyn/hopper-gravity-0p5/source-v0"]
+        assert official_datasets(runs) == expected
+
+
+def test_a_track_that_is_not_text_names_all_four_tracks(tmp_path, tiny_spec, write_spec):
+    line = _refused(tmp_path, tiny_spec(tmp_path / "out", track=3))
+    for track in ("offline-target", "online-target", "offline-source-offline-target", "offline-source-online-target"):
+        assert track in line
