@@ -1,8 +1,9 @@
 """Adroit hand tasks (pen, door, relocate, hammer) and the hand parts their shifts act on.
 
-The envs are Gymnasium-Robotics' ``AdroitHand*-v1`` classes (:mod:`offdyn_bench.robotics.adroit_envs`),
-MuJoCo envs on their own MJCF files, so the suite's model effects apply to them as to the locomotion robots. The two shift
-families use the existing effect vocabulary:
+The envs are Gymnasium-Robotics' ``AdroitHand*-v1`` classes
+(:mod:`offdyn_bench.robotics.adroit_envs`), MuJoCo envs on their own MJCF files, so the suite's
+model effects apply to them as to the locomotion robots. The two shift families use the existing
+effect vocabulary:
 
 * ``broken-joint``: ``joint_range`` shrinks one finger joint's range about its rest pose (a joint
   that no longer bends fully): easy x0.8, medium x0.5, hard x0.2.
@@ -10,8 +11,9 @@ families use the existing effect vocabulary:
   distal phalanx, each about its own joint, the next following its end): easy x0.8, medium x0.5,
   hard x0.2. Mass follows volume.
 
-Which part each task's shift breaks is data (:data:`ADROIT_TASKS`): the part the task's grasp
-leans on, so a competent policy meets the change (measured: tests/robotics and the README).
+Which part each task's shift acts on is data (:data:`ADROIT_TASKS`), chosen so that a competent
+policy meets the change: measured with :mod:`offdyn_bench.robotics.probes` (README, "AntMaze and
+Adroit"; tests/robotics).
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ class AdroitTask:
     shrunk_finger: str
     """The finger (a key of :data:`FINGERS`) of the ``shrink-finger`` shift."""
     why: str
+    """What the shrunk finger does in the task (the ``shrink-finger`` pairs' descriptions say it)."""
 
 
 _MODULE = "offdyn_bench.robotics.adroit_envs"  # imported when an env is built, not with the task grid
@@ -112,8 +115,9 @@ def adroit_pairs() -> list[tuple[str, str, str, str, tuple[Effect, ...], str]]:
     for task in ADROIT_TASKS.values():
         part, joint = task.broken_joint
         for level, scale in LEVEL_SCALES.items():
-            out.append((task.robot, "broken-joint", part, level, broken_joint(joint, level),
-                        f"target {joint} range x{scale:g} ({task.why})"))
+            description = (f"target {joint} (the thumb's proximal flexion) range x{scale:g}: the thumb "
+                           "closes less far onto the fingers")
+            out.append((task.robot, "broken-joint", part, level, broken_joint(joint, level), description))
         for level, scale in LEVEL_SCALES.items():
             segments = ", ".join(FINGERS[task.shrunk_finger].segments)
             out.append((task.robot, "shrink-finger", task.shrunk_finger, level, shrunk_finger(task.shrunk_finger, level),
