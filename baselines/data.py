@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from baselines.sac import Batch
+from offdyn_bench.envs import flat_observations, flatten_observation_rows
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TaskPair
 
@@ -173,7 +174,7 @@ def collect_dataset(task: TaskPair, policy: Policy | str, n_transitions: int, se
     offline-source tracks' source data)."""
     if n_transitions <= 0:
         raise OffdynError(f"cannot collect {n_transitions} transitions; expected a positive number")
-    env = task.make(side)
+    env = flat_observations(task.make(side))
     rng = np.random.default_rng(seed)
     act = _resolve_policy(policy, env.action_space, rng)
     rows: dict[str, list[Any]] = {name: [] for name in ARRAYS}
@@ -256,7 +257,7 @@ def load_dataset(spec: str, task: TaskPair, seed: int = 0, side: Side = "target"
     else:
         raise OffdynError(f"unrecognised dataset {spec!r}; expected collect:<policy>:<N>, a path to an .npz "
                           "file, or a Minari dataset id like offdyn/hopper-gravity-0p5/source-policy-v0")
-    env = task.make("target")
+    env = flat_observations(task.make("target"))
     dataset.check_spaces(env.observation_space, env.action_space, task.name)
     env.close()
     provenance |= {"spec": spec, "task_version": task.version, "size": len(dataset), "sha256": dataset.sha256()}
@@ -287,7 +288,7 @@ def _load_minari(dataset_id: str) -> tuple[TransitionDataset, dict[str, Any]]:
     data = load_installed(dataset_id)
     rows: dict[str, list[np.ndarray]] = {name: [] for name in ARRAYS}
     for episode in data.iterate_episodes():
-        obs = np.asarray(episode.observations)
+        obs = flatten_observation_rows(episode.observations, data.observation_space)
         rows["observations"].append(obs[:-1])
         rows["next_observations"].append(obs[1:])
         rows["actions"].append(np.asarray(episode.actions))

@@ -50,6 +50,7 @@ from baselines.method import Method, MethodContext
 from baselines.networks import mlp
 from baselines.run_folder import (CONFIG_FILE, METRICS_FILE, RESULT_FILE, check_writable, holds_files, read_config,
                                   read_metrics, run_folder_lock, write_json_atomic, write_lines_atomic)
+from offdyn_bench.envs import flat_observations
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.protocol.definition import ProtocolError
 from offdyn_bench.protocol.training import resolve_run
@@ -138,17 +139,17 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
         data, dataset_provenance = load_dataset(dataset, pair, DATASET_SEED)
         if resuming:
             _check_same_dataset(out, dataset_provenance)
-        target_data = data.to_batch(pair.make("target").action_space)
+        target_data = data.to_batch(flat_observations(pair.make("target")).action_space)
     source_provenance = None
     source_data = None
     if source_dataset is not None:
         data, source_provenance = load_dataset(source_dataset, pair, SOURCE_DATASET_SEED, side="source")
         if resuming:
             _check_same_dataset(out, source_provenance, key="source_dataset_provenance")
-        source_data = data.to_batch(pair.make("source").action_space)
+        source_data = data.to_batch(flat_observations(pair.make("source")).action_space)
     if threads:
         torch.set_num_threads(threads)
-    probe = pair.make("target")
+    probe = flat_observations(pair.make("target"))
     context = MethodContext(observation_dim=int(np.prod(probe.observation_space.shape)),
                             action_dim=int(np.prod(probe.action_space.shape)), seeds=seeds,
                             target_data=target_data, source_data=source_data, task=pair.name, device=device)
@@ -315,7 +316,7 @@ class _Envs:
     """One environment per training seed, stepped together, each episode seeded by its index."""
 
     def __init__(self, pair: TaskPair, side: str, seeds: Sequence[int], stream: int) -> None:
-        self.envs = [pair.make(side) for _ in seeds]
+        self.envs = [flat_observations(pair.make(side)) for _ in seeds]
         self.seeds, self.stream = seeds, stream
         space = self.envs[0].action_space
         self.low, self.high = space.low.astype(np.float64), space.high.astype(np.float64)
@@ -355,7 +356,7 @@ class _Loop:
         self.target_step_limit = target_step_limit
         self.train_envs = _Envs(pair, method.interaction, seeds, 1) if method.interaction != "none" else None
         self.target_envs = _Envs(pair, "target", seeds, 2) if method.target_step_every else None
-        self.eval_envs = [pair.make("target") for _ in seeds]
+        self.eval_envs = [flat_observations(pair.make("target")) for _ in seeds]
         for envs in (self.train_envs, self.target_envs):
             if envs is not None:
                 envs.reset_all()
@@ -489,7 +490,7 @@ def load_trained_policy(run_dir: str | Path) -> Callable[[np.ndarray], np.ndarra
     pair = get_task(str(read_config(run_dir).get("task")))
     tensors, _ = load_checkpoint(path)
     actor = [tensors[f"actor.{i}"][:1] for i in range(sum(1 for k in tensors if k.startswith("actor.")))]
-    space = pair.make("target").action_space
+    space = flat_observations(pair.make("target")).action_space
     action_dim = int(np.prod(space.shape))
     low, high = space.low.astype(np.float64), space.high.astype(np.float64)
 

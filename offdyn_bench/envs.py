@@ -224,3 +224,25 @@ def make_robot_env(robot: str, effects: EffectsLike = (), extra_effects: Effects
 def set_full_state(env: gymnasium.Env, state: np.ndarray) -> None:
     """Restore an env built by this suite to a ``state`` vector taken from its ``info``."""
     env.get_wrapper_attr("set_full_state")(state)
+
+
+def flat_observations(env: gymnasium.Env) -> gymnasium.Env:
+    """``env`` with a ``Dict`` observation (AntMaze's goal-conditioned ``observation``,
+    ``achieved_goal``, ``desired_goal``) flattened into one ``Box`` by Gymnasium's
+    ``FlattenObservation``, the form the baselines and evaluation take; any other env unchanged.
+    :func:`flatten_observation_rows` flattens stored dict observations the same way."""
+    if isinstance(env.observation_space, gymnasium.spaces.Dict):
+        return gymnasium.wrappers.FlattenObservation(env)
+    return env
+
+
+def flatten_observation_rows(observations: np.ndarray | dict, space: gymnasium.Space) -> np.ndarray:
+    """Rows of observations as :func:`flat_observations` gives them: a ``Dict`` space's parts
+    concatenated in the space's key order (``gymnasium.spaces.flatten``'s), other arrays as they are."""
+    if not isinstance(observations, dict):
+        return np.asarray(observations)
+    if not isinstance(space, gymnasium.spaces.Dict) or set(observations) != set(space.spaces):
+        raise ValueError(f"dict observations with keys {sorted(observations)} do not match the env's "
+                         f"observation space {space}")
+    return np.concatenate([flatten_observation_rows(observations[key], space.spaces[key]).reshape(
+        len(observations[key]), -1) for key in space.spaces], axis=1)

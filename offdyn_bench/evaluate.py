@@ -30,6 +30,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from offdyn_bench.envs import flat_observations
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.protocol.definition import (
     BUDGETS,
@@ -126,7 +127,7 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
         raise EvaluationError(f"{str(run_dir)!r}: the newest checkpoint is at step {trainer.get('step')}, "
                               f"not the run's final step {config['steps']}")
     pair = get_task(config["task"])
-    space = pair.make("target").action_space
+    space = flat_observations(pair.make("target")).action_space
     action_dim = int(np.prod(space.shape))
     names = sorted((k for k in tensors if k.startswith("actor.") and k.split(".")[1].isdigit()),
                    key=lambda k: int(k.split(".")[1]))
@@ -331,7 +332,7 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
 
     pair = get_task(task)
     episode_seeds = [int(EPISODE_SEEDS[0]) + e for e in range(episodes)]
-    env = pair.make(side)
+    env = flat_observations(pair.make(side))
     per_seed = []
     bar = tqdm(total=len(loaded.agents) * episodes, unit="episode", disable=not progress,
                desc=f"evaluate {pair.name} ({side})")

@@ -129,6 +129,11 @@ class SourceSimulator:
         if not all(hasattr(unwrapped, a) for a in ("model", "data", "frame_skip", "_get_obs")):
             raise DiagnosisInputError(f"source env {env_id!r} is not a Gymnasium MuJoCo env "
                                       "(it needs model, data, frame_skip and _get_obs)")
+        if isinstance(unwrapped.observation_space, gymnasium.spaces.Dict):
+            # Restarts from AntMaze's stored states are exact (tests/datasets), but this diagnosis's
+            # predictions on them were not checked: refuse rather than report unverified effects.
+            raise DiagnosisInputError(f"source env {env_id!r} has goal-conditioned (Dict) observations; diagnosis "
+                                      "supports envs with one Box observation (not AntMaze yet)")
         engine = getattr(unwrapped, "engine", "mujoco")
         if engine != "mujoco":  # e.g. a DART target: it carries a MuJoCo model, but never steps it
             raise DiagnosisInputError(f"source env {env_id!r} runs on {engine}; diagnosis predicts with MuJoCo "
