@@ -288,7 +288,9 @@ def _load_minari(dataset_id: str) -> tuple[TransitionDataset, dict[str, Any]]:
     data = load_installed(dataset_id)
     rows: dict[str, list[np.ndarray]] = {name: [] for name in ARRAYS}
     for episode in data.iterate_episodes():
-        obs = flatten_observation_rows(episode.observations, data.observation_space)
+        obs = episode.observations
+        # Dict observations (AntMaze's) as envs.flat_observations gives them to the learner.
+        obs = flatten_observation_rows(obs, data.observation_space) if isinstance(obs, dict) else np.asarray(obs)
         rows["observations"].append(obs[:-1])
         rows["next_observations"].append(obs[1:])
         rows["actions"].append(np.asarray(episode.actions))
