@@ -343,3 +343,19 @@ def test_wheel_legged_env_keeps_its_own_motor_model():
     _, _, _, _, info = env.step(np.array([2.5]))
     assert env.unwrapped.data.ctrl[0] == 1.0
     assert info["reward_torque"] == -4.0
+
+
+def test_a_noisy_channel_takes_any_array_like_action_and_applies_the_same_float64_command():
+    """The first noise stage may get the caller's action as it came: lists, tuples, float32 or
+    integer arrays and other libraries' arrays all give the very same command."""
+    torch = pytest.importorskip("torch")
+    applied = []
+    for action in ([0.25, -0.5, 1.0], (0.25, -0.5, 1.0), np.array([0.25, -0.5, 1.0], dtype=np.float32),
+                   np.array([0.25, -0.5, 1.0]), torch.tensor([0.25, -0.5, 1.0])):
+        env = make_robot_env("Hopper", [{"kind": "action_noise", "std": 0.1}])
+        env.reset(seed=4)
+        _, _, _, _, info = env.step(action)
+        assert isinstance(info["applied_action"], np.ndarray) and info["applied_action"].dtype == np.float64
+        applied.append(info["applied_action"])
+    for other in applied[1:]:
+        np.testing.assert_array_equal(other, applied[0])

@@ -466,8 +466,9 @@ class ChannelEffects(gymnasium.Wrapper):
         if row == self._block_rows:  # noise block used up: draw the next one
             row, self._block_rows = 0, self._noise.draw_block()
         self._row = row + 1
-        # A first stage that adds noise makes the float array itself (float64 noise + the action).
-        command = action if self._first_adds_noise else np.asarray(action, dtype=float)
+        # A first stage that adds noise to a numpy action makes the float64 array itself (float64
+        # noise + the action); anything else (a list, another library's array) is converted first.
+        command = action if self._first_adds_noise and type(action) is np.ndarray else np.asarray(action, dtype=float)
         for apply in self._action_steps:
             command = apply(command, row)
         result = self.env.step(command)
