@@ -59,7 +59,7 @@ def _variants(base_step: Callable) -> dict[str, Callable]:
     def block_rows(env):
         def step(action):
             result = base_step(env, action)
-            rows = env._suite.rows or env._suite.new_rows()
+            rows = env._suite.rows.free or env._suite.rows.refill()
             destination, _ = rows.pop()
             get_state(env.model, env.data, destination, bits)
             return result

@@ -30,13 +30,13 @@ from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from offdyn_bench.effects import ChannelEffects, Effect, effects_from_dicts, split_effects
 from offdyn_bench.effects.model import ModelEffect, compile_model
 from offdyn_bench.robots import ROBOTS, get_robot
+from offdyn_bench.state_rows import ReadOnlyRows
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS
 _FULL_PHYSICS_BITS = int(FULL_PHYSICS)  # pybind converts a plain int faster than the enum (hot path)
 _get_state = mujoco.mj_getState
 _step = mujoco.mj_step
 _rne_post_constraint = mujoco.mj_rnePostConstraint
-STATE_BLOCK_ROWS = 64  # states allocated at once; a kept state keeps its block (64 states) alive
 
 EffectsLike = Sequence[Effect | dict[str, Any]]
 
@@ -57,7 +57,7 @@ class _SuiteState:
         self.state_size = 0  # set once the model exists; reset() runs inside base.__init__
         self.last_state: np.ndarray | None = None
         self.last_time = math.nan  # the clock at last_state; NaN: read the state afresh
-        self.rows: list[tuple[np.ndarray, np.ndarray]] = []  # (writable, read-only) rows
+        self.rows = ReadOnlyRows(0)  # sized once the model exists
         self.ctrl = np.zeros(0)
         self.ctrl_shape: tuple[int, ...] = (0,)
         self.option: mujoco.MjOption | None = None
@@ -66,25 +66,17 @@ class _SuiteState:
         """Size the state; keep the views and objects the step reads (each read of ``data.ctrl``
         or ``model.opt`` makes a new Python object)."""
         self.state_size = mujoco.mj_stateSize(model, FULL_PHYSICS)
+        self.rows = ReadOnlyRows(self.state_size)
         self.ctrl, self.ctrl_shape, self.option = data.ctrl, (model.nu,), model.opt
 
     def forget_state(self) -> None:
         """The simulation was moved: the next step reads its state before afresh."""
         self.last_state, self.last_time = None, math.nan
 
-    def new_rows(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        # States are rows of a block allocated STATE_BLOCK_ROWS at a time, each handed out as a
-        # read-only view made here: per step this saves an allocation and a flags change.
-        # One array serves as this step's state and the next's prev_state, hence read-only.
-        block = np.empty((STATE_BLOCK_ROWS, self.state_size))
-        read_only = block.view()
-        read_only.flags.writeable = False
-        self.rows = list(zip(block, read_only))
-        return self.rows
-
     def capture(self, model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
         """The physics state now, as a new read-only row; remembered as the next step's state before."""
-        destination, state = (self.rows or self.new_rows()).pop()
+        rows = self.rows
+        destination, state = (rows.free or rows.refill()).pop()
         _get_state(model, data, destination, _FULL_PHYSICS_BITS)
         self.last_state = state
         self.last_time = destination[0]  # the state's own clock: no second read of data.time
@@ -143,7 +135,8 @@ def _with_model_effects(base: type) -> type:
                 prev = suite.capture(self.model, self.data)
             result = base_step(self, action)  # not super(): one call layer less per step
             # suite.capture() inlined: a call layer costs about 1% of a HalfCheetah step.
-            destination, state = (suite.rows or suite.new_rows()).pop()
+            rows = suite.rows
+            destination, state = (rows.free or rows.refill()).pop()
             _get_state(self.model, self.data, destination, _FULL_PHYSICS_BITS)
             suite.last_state = state
             suite.last_time = destination[0]

@@ -273,17 +273,14 @@ def _conformance(loaded: LoadedAgents, task: str, track: str | None, budget: str
         notes.append("no track given (--track)")
     if episodes != EVAL_EPISODES:
         notes.append(f"{episodes} episodes per seed; the protocol evaluates {EVAL_EPISODES}")
-    if track is not None and loaded.dataset is not None:
-        official = official_dataset(task, track)
-        used = loaded.dataset.get("dataset_id") or loaded.dataset.get("spec")
+    for kind, provenance, official_of in (("dataset", loaded.dataset, official_dataset),
+                                          ("source dataset", loaded.source_dataset, official_source_dataset)):
+        if track is None or provenance is None:
+            continue
+        official = official_of(task, track)
+        used = provenance.get("dataset_id") or provenance.get("spec")
         if official is not None and used != official:
-            notes.append(f"trained on dataset {used!r}; the track's official dataset is {official!r}")
-    if track is not None and loaded.source_dataset is not None:
-        official_source = official_source_dataset(task, track)
-        used = loaded.source_dataset.get("dataset_id") or loaded.source_dataset.get("spec")
-        if official_source is not None and used != official_source:
-            notes.append(f"trained on source dataset {used!r}; the track's official source dataset is "
-                         f"{official_source!r}")
+            notes.append(f"trained on {kind} {used!r}; the track's official {kind} is {official!r}")
     return track, budget, notes
 
 

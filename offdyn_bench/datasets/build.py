@@ -34,7 +34,15 @@ from offdyn_bench.datasets.manifest import (
     write_json_atomically,
     write_manifest,
 )
-from offdyn_bench.datasets.policies import Policy, PolicyError, UniformRandomPolicy, load_policy, policy_sha256, read_sidecar
+from offdyn_bench.datasets.policies import (
+    Policy,
+    PolicyError,
+    UniformRandomPolicy,
+    derived_seed,
+    load_policy,
+    policy_sha256,
+    read_sidecar,
+)
 from offdyn_bench.datasets.recipes import REPO_ROOT, SKILL_LEVELS, Recipe, RecipeError, dynamics_label
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TaskPair
@@ -96,13 +104,13 @@ def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Poli
     behaviour = recipe.behaviour
     if behaviour.kind == "uniform-random":
         seed = [recipe.seed, 1]
-        return (UniformRandomPolicy(space.low, space.high, seed=np.random.SeedSequence(seed).generate_state(1)[0]),
+        return (UniformRandomPolicy(space.low, space.high, seed=derived_seed(seed)),
                 recipe, {"kind": "uniform-random", "rng_seed": seed})
     if behaviour.kind == "human-operator":
         from offdyn_bench.wheel_legged.operator import HumanOperator  # only this robot's builds need scipy
 
         seed = [recipe.seed, 3]
-        operator = HumanOperator(str(pair.task), seed=int(np.random.SeedSequence(seed).generate_state(1)[0]))
+        operator = HumanOperator(str(pair.task), seed=derived_seed(seed))
         return operator, recipe, {**operator.describe(), "rng_seed": seed,
                                   "episode_rng": "numpy default_rng([operator seed, episode reset seed])"}
     path = repo_path(str(behaviour.policy))
@@ -201,13 +209,12 @@ def _collect_skill_mixture(recipe: Recipe, env: gymnasium.Env, policy: Policy,
     for index, (name, noise_std) in enumerate(SKILL_LEVELS):
         if noise_std is None:
             rng_seed = [recipe.seed, 1]
-            actor: Policy = UniformRandomPolicy(space.low, space.high,
-                                                seed=np.random.SeedSequence(rng_seed).generate_state(1)[0])
+            actor: Policy = UniformRandomPolicy(space.low, space.high, seed=derived_seed(rng_seed))
             noise, described = None, {"actions": "uniform random", "rng_seed": rng_seed}
         else:
             noise_seed = [recipe.seed, 2, index]
             actor = policy
-            noise = gaussian_action_noise(noise_std, int(np.random.SeedSequence(noise_seed).generate_state(1)[0]))
+            noise = gaussian_action_noise(noise_std, derived_seed(noise_seed))
             described = {"actions": "behaviour policy", "action_noise_std": noise_std, "action_noise_seed": noise_seed}
         count = share + (1 if index < extra else 0)
         collected = list(collect_transitions(env, actor, num_transitions=count, seed=recipe.seed,
@@ -230,8 +237,7 @@ def reference_scores(recipe: Recipe, pair: TaskPair, oracle_path: pathlib.Path |
     rng_seed = [recipe.reference_seed, 1]
     space = env.action_space
     assert isinstance(space, gymnasium.spaces.Box)
-    random_policy = UniformRandomPolicy(space.low, space.high,
-                                        seed=np.random.SeedSequence(rng_seed).generate_state(1)[0])
+    random_policy = UniformRandomPolicy(space.low, space.high, seed=derived_seed(rng_seed))
     random_returns = episode_returns(env, random_policy, episodes=recipe.reference_episodes, seed=seeds[0])
     common = {"env_id": pair.env_id("target"), "episode_seeds": seeds, "versions": versions(),
               "command": f"offdyn-bench datasets build {recipe.dataset_id}"}
@@ -317,11 +323,9 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
             behaviour.pop(per_level)
         episodes, behaviour["levels"] = _collect_skill_mixture(recipe, env, policy, on_progress)
     else:
-        noise_seed = np.random.SeedSequence([recipe.seed, 2]).generate_state(1)[0]
+        noise = gaussian_action_noise(recipe.behaviour.action_noise_std, derived_seed([recipe.seed, 2]))
         episodes = list(collect_transitions(env, policy, num_transitions=recipe.num_transitions, seed=recipe.seed,
-                                            action_noise=gaussian_action_noise(recipe.behaviour.action_noise_std,
-                                                                               int(noise_seed)),
-                                            on_step=on_progress))
+                                            action_noise=noise, on_step=on_progress))
     env.close()
     oracle_path, recipe = _oracle(recipe, fresh=recorded is None or recorded.files is None)
     scores = reference_scores(recipe, pair, oracle_path)

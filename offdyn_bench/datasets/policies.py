@@ -43,6 +43,12 @@ class Policy(Protocol):
     def __call__(self, obs: np.ndarray) -> np.ndarray: ...
 
 
+def derived_seed(entropy: Sequence[int]) -> int:
+    """One seed from a list of integers (``[recipe seed, stream]``): the first word of their
+    ``SeedSequence``, so each stream of a recipe draws from its own generator."""
+    return int(np.random.SeedSequence(list(entropy)).generate_state(1)[0])
+
+
 class UniformRandomPolicy:
     """Uniform actions inside the box, from its own seeded generator (reproducible)."""
 

@@ -19,6 +19,7 @@ import numpy as np
 from offdyn_bench.effects.base import Effect, Interval
 from offdyn_bench.effects.model import actuator_ids
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.state_rows import ReadOnlyRows
 
 if TYPE_CHECKING:  # MuJoCo loads when a model is built (see effects.model), not on import
     import mujoco
@@ -377,8 +378,8 @@ class ChannelEffects(gymnasium.Wrapper):
         self._obs_dtype = self.observation_space.dtype
         self._buffered = [stage for stage in self._stages if stage.buffer.size]
         self._state_parts: list[np.ndarray] = [np.zeros(0), *(stage.buffer.reshape(-1) for stage in self._buffered)]
-        self._state_parts_size = sum(part.size for part in self._state_parts)
-        self._state_rows: list[tuple[np.ndarray, np.ndarray]] = []
+        self._state_rows_extra = sum(part.size for part in self._state_parts)
+        self._state_rows = ReadOnlyRows(0)  # sized on first use: physics state plus buffers
         self._row = 0  # this step's row of the noise block
         self._block_rows = 0 if self._noise.step_stages else -1  # rows in the block; -1: no noise
         # The full state vector given last (physics + buffers) and the physics part it was made
@@ -416,21 +417,12 @@ class ChannelEffects(gymnasium.Wrapper):
         parts = self._state_parts  # the buffers' flat views, kept: the buffers change in place
         parts[0] = physics_state
         rows = self._state_rows
-        if not rows or rows[-1][0].size != physics_state.size + self._state_parts_size:
-            rows = self._new_state_rows(physics_state.size + self._state_parts_size)
-        destination, state = rows.pop()
+        if rows.size != physics_state.size + self._state_rows_extra:
+            rows = self._state_rows = ReadOnlyRows(physics_state.size + self._state_rows_extra)
+        destination, state = (rows.free or rows.refill()).pop()
         np.concatenate(parts, out=destination)
         self._last_state = (physics_state, state)
         return state
-
-    def _new_state_rows(self, size: int) -> list[tuple[np.ndarray, np.ndarray]]:
-        # As the physics states (offdyn_bench.envs): rows of a block, handed out as read-only views
-        # made in bulk, since one array is this step's state and the next step's prev_state.
-        block = np.empty((64, size))
-        read_only = block.view()
-        read_only.flags.writeable = False
-        self._state_rows = list(zip(block, read_only))
-        return self._state_rows
 
     def _observe(self, obs: np.ndarray, row: int) -> np.ndarray:
         for apply in self._obs_steps:

@@ -136,7 +136,7 @@ def record_random_reference(task: str, path: str | os.PathLike[str] | None = Non
     record it (replacing an older random entry of that task)."""
     import gymnasium
 
-    from offdyn_bench.datasets.policies import UniformRandomPolicy
+    from offdyn_bench.datasets.policies import UniformRandomPolicy, derived_seed
     from offdyn_bench.tasks import get_task
     from offdyn_bench.versions import versions
 
@@ -147,7 +147,7 @@ def record_random_reference(task: str, path: str | os.PathLike[str] | None = Non
     returns = []
     for episode_seed in episodes:
         policy = UniformRandomPolicy(space.low, space.high,
-                                     seed=int(np.random.SeedSequence([episode_seed, RANDOM_RNG_STREAM]).generate_state(1)[0]))
+                                     seed=derived_seed([episode_seed, RANDOM_RNG_STREAM]))
         observation, _ = env.reset(seed=int(episode_seed))
         total, done = 0.0, False
         while not done:
