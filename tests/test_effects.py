@@ -200,6 +200,29 @@ def test_deadzone_zeroes_small_commands_and_passes_large_ones_unchanged():
     np.testing.assert_array_equal(out, [[0.0, 0.0, 0.3], [-0.5, 0.0, -0.11]])
 
 
+def test_the_per_step_dead_zone_gives_the_transforms_bits_for_any_array_like_command():
+    """The wrapper's per-step dead zone (Python floats) is ``transform`` on one command: the same
+    float64 bits (signed zeros, the threshold itself, NaN and infinities included), a new array,
+    the caller's command unchanged, whatever it came as."""
+    torch = pytest.importorskip("torch")
+    values = [0.1, -0.1, 0.1000001, -0.0999999, -0.0, 0.0, np.nan, -np.inf, np.inf, 5e-324, -3.0, 0.25]
+    masks = [None, np.array([i % 3 != 1 for i in range(len(values))]), np.zeros(len(values), dtype=bool)]
+    for threshold in (0.1, 0.0):
+        effect = ActionDeadzone(threshold=threshold)
+        for mask in masks:
+            step = effect.per_step(mask, len(values))
+            for command in (np.array(values), np.array(values, dtype=np.float32), values, tuple(values),
+                            torch.tensor(values, dtype=torch.float64), torch.tensor(values, dtype=torch.float32),
+                            np.arange(-6, 6), np.arange(-6, 6) % 2 == 0):
+                expected = effect.transform(np.asarray(command, dtype=float), mask, None)
+                before = np.asarray(command, dtype=float).copy()
+                got = step(command)
+                assert type(got) is np.ndarray and got.dtype == np.float64 and got is not command
+                assert got.tobytes() == expected.tobytes(), (threshold, mask, command)
+                np.testing.assert_array_equal(np.asarray(command, dtype=float), before)
+    assert ActionDeadzone(threshold=0.1).per_step(None, ActionDeadzone.PER_STEP_MAX_SIZE + 1) is None
+
+
 def test_delay_transform_shifts_by_exactly_k():
     x = np.arange(12, dtype=float).reshape(6, 2)
     out = ActionDelay(steps=2).transform(x, np.array([True, False]), None)

@@ -359,3 +359,136 @@ def test_a_noisy_channel_takes_any_array_like_action_and_applies_the_same_float6
         applied.append(info["applied_action"])
     for other in applied[1:]:
         np.testing.assert_array_equal(other, applied[0])
+
+
+# --- channel fast paths: the same bits as the generic path ----------------------------------------
+
+def _generic_channel(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make ChannelEffects built from now on take its generic path: every memoryless stage through
+    its effect's ``transform``, every delay through one shifted buffer."""
+    from offdyn_bench.effects import channel
+
+    monkeypatch.setattr(channel.ChannelEffect, "per_step", lambda self, mask, size: None)
+    monkeypatch.setattr(channel.ActionDeadzone, "per_step", lambda self, mask, size: None)
+    monkeypatch.setattr(channel._Stage, "RING_STEPS", 0)
+
+
+def _channel_trace(env: gymnasium.Env, actions: list, torch) -> list:
+    """Everything a run gives, as bytes: observations, rewards, flags, applied actions, states
+    (before and after, and whether prev_state is the previous state itself), across resets,
+    set_state and set_full_state; the caller scribbles on what it gets and reuses its action arrays."""
+    def exact(x):
+        if isinstance(x, np.ndarray):
+            return x.dtype.str, x.shape, x.tobytes(), x.flags.writeable
+        if isinstance(x, dict):
+            return {key: exact(value) for key, value in x.items()}
+        return x
+
+    out = []
+    obs, info = env.reset(seed=3)
+    out.append(("reset", exact(obs), exact(info)))
+    states, last = [info["state"]], info["state"]
+    for t, action in enumerate(actions):
+        if t == 40:
+            obs, info = env.reset()
+            out.append(("reset", exact(obs), exact(info)))
+            last = info["state"]
+        if t == 70:
+            set_full_state(env, states[20])
+            last = None
+        if t == 90:
+            base = env.unwrapped
+            qpos = base.data.qpos.copy()
+            qpos[1] += 0.01
+            base.set_state(qpos, base.data.qvel.copy())
+        if t % 5 == 1:
+            action = action.astype(np.float32)
+        elif t % 5 == 2:
+            action = action.tolist()
+        elif t % 5 == 3:
+            action = torch.tensor(action)
+        obs, reward, terminated, truncated, info = env.step(action)
+        out.append((t, exact(obs), reward, terminated, truncated, exact(info), info["prev_state"] is last))
+        if isinstance(action, np.ndarray):
+            action[:] = 7.0  # the caller reuses its action array: a delay must have kept its own copy
+        obs[...] = -3.0  # and writes over its observation: a delay must not hand out what it keeps
+        info["applied_action"][...] = 5.0
+        states.append(info["state"])
+        last = info["state"]
+    return out
+
+
+@pytest.mark.parametrize("effects", [
+    [{"kind": "action_deadzone", "threshold": 0.3}, {"kind": "obs_delay", "steps": 1},
+     *({"kind": "obs_noise", "target": i, "std": 0.01} for i in range(4))],  # the wheel-legged target's channel
+    [{"kind": "action_deadzone", "threshold": 0.4, "target": "foot_joint"}, {"kind": "action_delay", "steps": 2},
+     {"kind": "obs_delay", "steps": 3, "target": 2}, {"kind": "obs_bias", "value": 0.1}],
+    [{"kind": "action_delay", "steps": 1}, {"kind": "action_deadzone", "threshold": 0.2},
+     {"kind": "obs_noise", "std": 0.1}, {"kind": "obs_delay", "steps": 1}],
+    [{"kind": "action_noise", "std": 0.2}, {"kind": "action_deadzone", "threshold": 0.2},
+     {"kind": "obs_delay", "steps": 0}, {"kind": "obs_delay", "steps": 16}, {"kind": "obs_delay", "steps": 17}],
+    [{"kind": "action_delay", "steps": 20, "target": "thigh_joint"}, {"kind": "obs_delay", "steps": 1, "target": 0}],
+])
+def test_channel_fast_paths_step_exactly_like_the_generic_path(effects, monkeypatch):
+    """The per-step dead zone on Python floats and the short delays that keep their inputs (no copy
+    per step) give what the effects' transforms and a shifted buffer give, bit for bit: the same
+    observations, rewards, applied actions and state vectors, for float32, list and torch actions,
+    through resets and restarts from a state."""
+    torch = pytest.importorskip("torch")
+    actions = list(np.random.default_rng(0).uniform(-1, 1, size=(120, 3)) * np.tile([[1.0], [0.2]], (60, 1)))
+    fast = make_robot_env("Hopper", effects, terminate_when_unhealthy=False)
+    fast_trace = _channel_trace(fast, [a.copy() for a in actions], torch)
+    _generic_channel(monkeypatch)
+    generic = make_robot_env("Hopper", effects, terminate_when_unhealthy=False)
+    assert fast_trace == _channel_trace(generic, [a.copy() for a in actions], torch)
+    ring = [stage.keeps_input for stage in fast._stages]
+    assert any(ring) == any(e["kind"].endswith("delay") and 0 < e["steps"] <= 16 for e in effects)
+    assert not any(stage.keeps_input for stage in generic._stages)
+
+
+def test_a_short_delay_keeps_arrays_of_its_own():
+    """A one-step observation delay hands out the observation it kept (no copy), so it must keep a
+    copy of what the env gave, and a kept state vector must not change when the caller writes
+    over the observation it got."""
+    env = make_robot_env("Hopper", [{"kind": "obs_delay", "steps": 1}, {"kind": "action_delay", "steps": 1}],
+                         terminate_when_unhealthy=False)
+    base = env.unwrapped
+    obs, info = env.reset(seed=0)
+    first = obs.copy()
+    action = np.full(3, 0.5)
+    obs, _, _, _, info = env.step(action)
+    np.testing.assert_array_equal(obs, first)  # one step late: the reset's observation
+    kept = info["state"].copy()
+    obs[...] = 9.0
+    action[...] = -0.25  # the caller's array, reused
+    np.testing.assert_array_equal(info["state"], kept)
+    _, _, _, _, info = env.step(np.zeros(3))
+    np.testing.assert_array_equal(info["applied_action"], 0.5)  # what was sent, not the reused array
+    # the buffers follow the physics, action stages first: the command kept, the observation kept
+    np.testing.assert_array_equal(info["state"][base.state_size:], np.concatenate([np.zeros(3), base._get_obs()]))
+
+
+@pytest.mark.parametrize("copier", ["pickle", "deepcopy"])
+def test_a_copied_channel_env_steps_exactly_like_the_original(copier):
+    """Pickled or deep-copied mid-episode (its per-step functions, kept inputs and blocks of state
+    rows with it), an env with channel effects then runs exactly like the original: the rows of a
+    block are not split from their read-only views, so every state vector is the state."""
+    import copy
+    import pickle
+
+    torch = pytest.importorskip("torch")
+    effects = [{"kind": "action_deadzone", "threshold": 0.2}, {"kind": "action_delay", "steps": 1},
+               {"kind": "obs_delay", "steps": 20, "target": 1}, {"kind": "obs_delay", "steps": 1},
+               {"kind": "obs_noise", "std": 0.1, "target": 0}, {"kind": "obs_noise", "std": 0.1, "target": 3}]
+    env = make_robot_env("Hopper", effects, terminate_when_unhealthy=False)
+    env.reset(seed=0)
+    for action in np.random.default_rng(1).uniform(-1, 1, size=(5, 3)):
+        env.step(action)
+    copied = pickle.loads(pickle.dumps(env)) if copier == "pickle" else copy.deepcopy(env)
+    actions = list(np.random.default_rng(2).uniform(-1, 1, size=(80, 3)))
+    trace = _channel_trace(copied, [a.copy() for a in actions], torch)
+    assert trace == _channel_trace(env, [a.copy() for a in actions], torch)
+    for entry in trace:
+        if entry[0] != "reset":
+            state = np.frombuffer(entry[5]["state"][2])
+            assert state[0] > 0.0 and np.isfinite(state).all()  # a state, not a row left unwritten

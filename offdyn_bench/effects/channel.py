@@ -10,7 +10,9 @@ appends its buffers to the ``state`` vectors in ``info`` so a simulator can be r
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+import functools
+from collections import deque
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import gymnasium
@@ -23,6 +25,13 @@ from offdyn_bench.state_rows import ReadOnlyRows
 
 if TYPE_CHECKING:  # MuJoCo loads when a model is built (see effects.model), not on import
     import mujoco
+
+
+def _own_float64(x: Any) -> np.ndarray:
+    """``x`` as a float64 array of its own: a copy unless converting it made a new array already.
+    (Not ``np.array(x, dtype=float)``: another library's ``__array__`` may not take its ``copy``.)"""
+    out = np.asarray(x, dtype=float)
+    return out.copy() if out is x or out.base is not None else out
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -41,6 +50,13 @@ class ChannelEffect(Effect):
     def transform(self, x: np.ndarray, mask: np.ndarray | None,
                   rng: np.random.Generator | None) -> np.ndarray:
         raise NotImplementedError
+
+    def per_step(self, mask: np.ndarray | None, size: int) -> Callable[[Any], np.ndarray] | None:
+        """A faster form of ``transform(x, mask, None)`` for the one vector ``x`` of ``size``
+        numbers a step gives the run-time wrapper, or ``None`` (the wrapper then calls
+        ``transform``). It must return a new float64 array with ``transform``'s very bits and
+        take any array-like ``x`` (a list, float32, another library's array): it converts it."""
+        return None
 
     def dimension_mask(self, size: int, model: mujoco.MjModel | None = None) -> np.ndarray:
         """Boolean mask over the channel's dimensions that this effect targets."""
@@ -156,11 +172,32 @@ class ActionDeadzone(ChannelEffect):
     ranges: ClassVar = {"threshold": Interval(0.0, 1e3, unit="command units")}
     threshold: float
 
+    # Up to this many numbers a per-step loop over Python floats beats numpy's calls on tiny arrays.
+    PER_STEP_MAX_SIZE: ClassVar[int] = 64
+
     def transform(self, x, mask, rng):
         small = np.abs(x) <= np.asarray(self.threshold)  # a 0-d array compares faster than a float
         out = np.array(x, dtype=float)
         np.copyto(out, 0.0, where=small if mask is None else mask & small)  # np.where's values, cheaper
         return out
+
+    def per_step(self, mask, size):
+        """One command as Python floats: a comparison and a store per targeted number, where
+        ``transform`` makes five numpy calls (each costs more than the whole loop on a few numbers).
+        The same numbers: converting to float64, ``abs`` and ``<=`` are exact on both sides."""
+        if size > self.PER_STEP_MAX_SIZE:
+            return None
+        targeted = tuple(range(size) if mask is None else np.flatnonzero(mask).tolist())
+        return functools.partial(_dead_zone, float(self.threshold), targeted)  # a partial pickles; a closure not
+
+
+def _dead_zone(threshold: float, targeted: tuple[int, ...], x: Any) -> np.ndarray:
+    out = _own_float64(x)  # the caller's action stays as it was
+    values = out.tolist()
+    for i in targeted:
+        if abs(values[i]) <= threshold:
+            out[i] = 0.0
+    return out
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -225,42 +262,98 @@ class ObsDelay(_Delay):
 
 class _Stage:
     """One effect at run time: its mask; for noise, the noise term of each step of the current
-    block (one array per step, filled by :class:`_NoiseBlocks`); for a delay, a FIFO of past values."""
+    block (one array per step, filled by :class:`_NoiseBlocks`); for a delay, its past inputs.
+
+    A short delay (up to ``RING_STEPS``) keeps its last ``steps`` inputs as separate arrays,
+    oldest first, none ever written in place: a step hands out the oldest (no copy) and appends the
+    new input, which must be an array of the stage's own (``keeps_input``): the wrapper copies what
+    it gives a first stage, and a later delay (``copy_input``) copies what the stage before it
+    made. A longer one shifts one contiguous buffer, so its state is one part, not ``steps`` parts.
+    ``past`` is the stage's state in parts, oldest first.
+    """
+
+    RING_STEPS = 16
 
     def __init__(self, effect: ChannelEffect, mask: np.ndarray) -> None:
         self.effect = effect
         self.mask: np.ndarray | None = None if mask.all() else mask
+        self.size = mask.size
         self.noise_size = mask.size if isinstance(effect, _Noise) else 0
         self.noise_block = np.zeros((0, mask.size))
         self.noise_rows: list[np.ndarray] = []
+        self.grouped = False  # its noise is added by a _NoiseGroup (which keeps the rows)
         self.memoryless = not effect.delay_steps
         self.transform = effect.transform  # bound once: called every step
-        self.buffer = np.zeros((effect.steps if effect.delay_steps else 0, mask.size))  # type: ignore[attr-defined]
+        self.steps: int = effect.steps if effect.delay_steps else 0  # type: ignore[attr-defined]
+        self.keeps_input = 0 < self.steps <= self.RING_STEPS
+        self.buffer = np.zeros((0 if self.keeps_input else self.steps, mask.size))
+        self.past: deque[np.ndarray] | tuple[np.ndarray, ...] = (
+            deque(np.zeros(mask.size) for _ in range(self.steps)) if self.keeps_input
+            else (self.buffer.reshape(-1),) if self.steps else ())
+        self.copy_input = True
+        per_step = effect.per_step(self.mask, mask.size) if self.memoryless and not self.noise_size else None
+        self.step_function = per_step
+        # Whether `apply` takes the caller's action as it came (it converts it itself).
+        self.converts_input = per_step is not None
         # What one step runs, chosen once: the per-step cost of tiny arrays is all call overhead.
         if self.noise_size:
             self.apply = self._add_noise
+        elif per_step is not None:
+            self.apply = self._per_step
         elif self.memoryless:
             self.apply = self._memoryless
-        elif len(self.buffer):
+        elif self.keeps_input:
             self.apply = self._delay
+        elif self.steps:
+            self.apply = self._shift
         else:
             self.apply = self._unchanged
 
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        if self.steps and not self.keeps_input:  # pickled, the view became an array of its own
+            self.past = (self.buffer.reshape(-1),)
+
+    @property
+    def state_size(self) -> int:
+        """How many numbers of the state vector are this stage's (its past inputs)."""
+        return self.steps * self.size
+
     def reset(self, first: np.ndarray) -> None:
-        if len(self.buffer):
+        if self.keeps_input:
+            fill = np.asarray(self.effect.initial_fill(first), dtype=float)  # type: ignore[attr-defined]
+            self.past = deque(np.array(np.broadcast_to(fill, (self.size,))) for _ in range(self.steps))
+        elif self.steps:
             self.buffer[:] = self.effect.initial_fill(first)  # type: ignore[attr-defined]
+
+    def restore(self, values: np.ndarray) -> None:
+        """Take past inputs back from a state vector's part (copied: the vector stays the caller's)."""
+        if self.keeps_input:
+            self.past = deque(np.array(row, dtype=float) for row in values.reshape(self.steps, self.size))
+        else:
+            self.buffer[:] = values.reshape(self.buffer.shape)
 
     def _add_noise(self, x: np.ndarray, row: int) -> np.ndarray:
         return x + self.noise_rows[row]
+
+    def _per_step(self, x: Any, row: int) -> np.ndarray:
+        return self.step_function(x)  # type: ignore[misc]
 
     def _memoryless(self, x: np.ndarray, row: int) -> np.ndarray:
         return self.transform(x, self.mask, None)
 
     def _delay(self, x: np.ndarray, row: int) -> np.ndarray:
+        past: deque[np.ndarray] = self.past  # type: ignore[assignment]
+        out = past.popleft()  # no longer kept: handed out as it is
+        if self.mask is not None:
+            out = np.where(self.mask, out, x)
+        past.append(np.array(x, dtype=float) if self.copy_input else x)
+        return out
+
+    def _shift(self, x: np.ndarray, row: int) -> np.ndarray:
         buffer = self.buffer
         out = buffer[0].copy() if self.mask is None else np.where(self.mask, buffer[0], x)
-        if len(buffer) > 1:
-            buffer[:-1] = buffer[1:]
+        buffer[:-1] = buffer[1:]
         buffer[-1] = x
         return out
 
@@ -282,6 +375,8 @@ class _NoiseGroup:
     def __init__(self, stages: Sequence[_Stage]) -> None:
         self.stages = tuple(stages)
         self.noise_rows: list[np.ndarray] = []
+        for stage in self.stages:
+            stage.grouped = True
 
     @staticmethod
     def can_join(group: Sequence[_Stage], stage: _Stage) -> bool:
@@ -345,7 +440,8 @@ class _NoiseBlocks:
             end = start + stage.noise_size
             stage.noise_block = stage.effect.noise_term(z[:, start:end], stage.mask)  # type: ignore[attr-defined]
             # One array per step, made here in bulk: cheaper than indexing the block every step.
-            stage.noise_rows = list(stage.noise_block)
+            # A grouped stage's rows go into its group's sum instead.
+            stage.noise_rows = [] if stage.grouped else list(stage.noise_block)
             start = end
         for group in self.groups:
             if group.stages[0] in stages:
@@ -359,6 +455,9 @@ class ChannelEffects(gymnasium.Wrapper):
     same seed gives the same noise. ``info["state"]`` (and ``info["prev_state"]`` on ``step``)
     gain the delay buffers at their end; :meth:`set_full_state` takes such a vector back.
     """
+
+    # How a step turns the caller's action into the first stage's input.
+    _AS_FLOAT64, _OWN_COPY, _AS_GIVEN, _NUMPY_AS_GIVEN = range(4)
 
     def __init__(self, env: gymnasium.Env, effects: Sequence[ChannelEffect]) -> None:
         super().__init__(env)
@@ -374,12 +473,27 @@ class ChannelEffects(gymnasium.Wrapper):
         self._noise = _NoiseBlocks(self._action_stages, self._obs_stages)
         self._action_steps = self._step_functions(self._action_stages)
         self._obs_steps = self._step_functions(self._obs_stages)
-        self._first_adds_noise = bool(self._action_stages) and bool(self._action_stages[0].noise_size)
-        self._obs_dtype = self.observation_space.dtype
-        self._buffered = [stage for stage in self._stages if stage.buffer.size]
-        self._state_parts: list[np.ndarray] = [np.zeros(0), *(stage.buffer.reshape(-1) for stage in self._buffered)]
-        self._state_rows_extra = sum(part.size for part in self._state_parts)
-        self._state_rows = ReadOnlyRows(0)  # sized on first use: physics state plus buffers
+        first = self._action_stages[0] if self._action_stages else None
+        if first is not None and first.noise_size:
+            # A first stage that adds noise to a numpy action makes the float64 array itself
+            # (float64 noise + the action); anything else (a list, another library's array) is
+            # converted first.
+            self._action_entry = self._NUMPY_AS_GIVEN
+        elif first is not None and first.converts_input:
+            self._action_entry = self._AS_GIVEN
+        elif first is not None and first.keeps_input:
+            self._action_entry = self._OWN_COPY  # a delay keeps it: not the caller's array
+        else:
+            self._action_entry = self._AS_FLOAT64
+        # The observation as the first stage gets it: a copy of its own when a delay keeps it.
+        self._obs_copy = bool(self._obs_stages) and self._obs_stages[0].keeps_input
+        # Every stage makes float64: a float64 space needs no final cast.
+        self._obs_dtype = None if self.observation_space.dtype == np.float64 else self.observation_space.dtype
+        self._buffered = [stage for stage in self._stages if stage.steps]
+        self._state_rows_extra = sum(stage.state_size for stage in self._buffered)
+        self._state_rows = ReadOnlyRows(0, -1)  # sized on first use: physics state plus buffers
+        # The stage whose one part is all of the channel state (one delay of one step, or a long one), if any.
+        self._only_past = self._buffered[0] if len(self._buffered) == 1 and len(self._buffered[0].past) == 1 else None
         self._row = 0  # this step's row of the noise block
         self._block_rows = 0 if self._noise.step_stages else -1  # rows in the block; -1: no noise
         # The full state vector given last (physics + buffers) and the physics part it was made
@@ -388,6 +502,8 @@ class ChannelEffects(gymnasium.Wrapper):
 
     def _step_functions(self, stages: Sequence[_Stage]) -> list:
         """What each step applies, in order: a stage's own function, or one per noise group."""
+        for i, stage in enumerate(stages):
+            stage.copy_input = i > 0  # the first stage's input is made for it by step and reset
         runs: list[list[_Stage]] = []
         for stage in stages:
             if runs and _NoiseGroup.can_join(runs[-1], stage):
@@ -406,28 +522,32 @@ class ChannelEffects(gymnasium.Wrapper):
 
     @property
     def channel_state_size(self) -> int:
-        return sum(stage.buffer.size for stage in self._buffered)
+        return self._state_rows_extra
 
     def channel_state(self) -> np.ndarray:
         if not self._buffered:
             return np.zeros(0)
-        return np.concatenate([stage.buffer.ravel() for stage in self._buffered])
+        return np.concatenate([past for stage in self._buffered for past in stage.past])
 
     def _with_channel_state(self, physics_state: np.ndarray) -> np.ndarray:
-        parts = self._state_parts  # the buffers' flat views, kept: the buffers change in place
-        parts[0] = physics_state
         rows = self._state_rows
-        if rows.size != physics_state.size + self._state_rows_extra:
-            rows = self._state_rows = ReadOnlyRows(physics_state.size + self._state_rows_extra)
-        destination, state = (rows.free or rows.refill()).pop()
-        np.concatenate(parts, out=destination)
+        if rows.split != physics_state.size:
+            rows = self._state_rows = ReadOnlyRows(physics_state.size + self._state_rows_extra, physics_state.size)
+        _, state, physics_part, channel_part = (rows.free or rows.refill()).pop()
+        physics_part[...] = physics_state
+        only = self._only_past
+        if only is not None:
+            channel_part[...] = only.past[0]
+        else:
+            np.concatenate([past for stage in self._buffered for past in stage.past], out=channel_part)
         self._last_state = (physics_state, state)
         return state
 
-    def _observe(self, obs: np.ndarray, row: int) -> np.ndarray:
+    def _observe(self, obs: Any, row: int) -> np.ndarray:
+        obs = _own_float64(obs) if self._obs_copy else np.asarray(obs, dtype=float)
         for apply in self._obs_steps:
             obs = apply(obs, row)
-        return obs.astype(self._obs_dtype, copy=False)
+        return obs if self._obs_dtype is None else obs.astype(self._obs_dtype, copy=False)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
@@ -443,7 +563,7 @@ class ChannelEffects(gymnasium.Wrapper):
             stage.reset(zero_action)
         for stage in self._obs_stages:
             stage.reset(np.asarray(obs, dtype=float))
-        obs = self._observe(np.asarray(obs, dtype=float), 0)
+        obs = self._observe(obs, 0)
         self._last_state = None
         if "state" in info and self._buffered:
             info["state"] = self._with_channel_state(info["state"])
@@ -458,16 +578,23 @@ class ChannelEffects(gymnasium.Wrapper):
         if row == self._block_rows:  # noise block used up: draw the next one
             row, self._block_rows = 0, self._noise.draw_block()
         self._row = row + 1
-        # A first stage that adds noise to a numpy action makes the float64 array itself (float64
-        # noise + the action); anything else (a list, another library's array) is converted first.
-        command = action if self._first_adds_noise and type(action) is np.ndarray else np.asarray(action, dtype=float)
+        entry = self._action_entry
+        if entry == 0 or (entry == 3 and type(action) is not np.ndarray):  # _AS_FLOAT64, _NUMPY_AS_GIVEN
+            command = np.asarray(action, dtype=float)
+        elif entry == 1:  # _OWN_COPY
+            command = _own_float64(action)
+        else:  # _AS_GIVEN, or _NUMPY_AS_GIVEN of a numpy array
+            command = action
         for apply in self._action_steps:
             command = apply(command, row)
-        result = self.env.step(command)
-        info = result[4]
+        obs, reward, terminated, truncated, info = self.env.step(command)
         info["applied_action"] = command
         if self._obs_steps:
-            result = (self._observe(np.asarray(result[0], dtype=float), row), *result[1:])
+            obs = _own_float64(obs) if self._obs_copy else np.asarray(obs, dtype=float)
+            for apply in self._obs_steps:
+                obs = apply(obs, row)
+            if self._obs_dtype is not None:
+                obs = obs.astype(self._obs_dtype, copy=False)
         if buffered and "state" in info:
             prev_physics = info["prev_state"]
             if last is not None and last[0] is prev_physics:
@@ -477,7 +604,7 @@ class ChannelEffects(gymnasium.Wrapper):
                     prev_channel = last[1][last[0].size:]
                 info["prev_state"] = np.concatenate([prev_physics, prev_channel])
             info["state"] = self._with_channel_state(info["state"])
-        return result
+        return obs, reward, terminated, truncated, info
 
     def set_full_state(self, state: np.ndarray) -> None:
         """Restore physics and delay buffers from a ``state`` vector taken from ``info``."""
@@ -487,6 +614,6 @@ class ChannelEffects(gymnasium.Wrapper):
         self.env.get_wrapper_attr("set_full_state")(inner)
         offset = inner.size
         for stage in self._buffered:
-            stage.buffer[:] = state[offset: offset + stage.buffer.size].reshape(stage.buffer.shape)
-            offset += stage.buffer.size
+            stage.restore(state[offset: offset + stage.state_size])
+            offset += stage.state_size
         self._last_state = None

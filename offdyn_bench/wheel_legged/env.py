@@ -155,7 +155,8 @@ class WheelLeggedEnv(MujocoEnv, utils.EzPickle):
         return obs, reward, terminated, False, info
 
     def do_simulation(self, ctrl: np.ndarray, n_frames: int) -> None:
-        if np.shape(ctrl) != (1,):
+        # An array's own shape: np.shape() costs a function dispatch more (a list still goes through it).
+        if (ctrl.shape if type(ctrl) is np.ndarray else np.shape(ctrl)) != (1,):
             raise ValueError(f"expected an action of shape (1,) (the summed wheel torque), got {np.shape(ctrl)}")
         command = float(ctrl[0])
         # Clipped here so that the reward's torque term sees what the motors got.
