@@ -229,12 +229,13 @@ def _solver_candidates(model: mujoco.MjModel) -> list[Candidate]:
 
 def candidate_library(source: SourceSimulator, *, obs_bias_dims: Iterable[int] | None = None,
                       obs_delay_dims: Iterable[int] | None = None,
-                      qpos: np.ndarray | None = None) -> list[Candidate]:
+                      qpos: np.ndarray | None = None, commands: np.ndarray | None = None) -> list[Candidate]:
     """Every candidate the vocabulary allows on ``source``'s model and observation.
 
     ``obs_bias_dims`` / ``obs_delay_dims``: the observation dimensions where the data allow that
     observation effect (``None``: every dimension read off the state). ``qpos``: the recorded
-    positions, which suggest where a joint's limits lie.
+    positions, which suggest where a joint's limits lie. ``commands``: the recorded commands
+    (rows x actuators), which suggest where a dead zone can be seen at all.
     """
     model = source.base_model
     out: list[Candidate] = [
@@ -284,12 +285,12 @@ def candidate_library(source: SourceSimulator, *, obs_bias_dims: Iterable[int] |
         ids = np.arange(model.nu) if actuator is None else np.array([actuator])
         limited = model.actuator_ctrllimited[ids].astype(bool)
         limit = float(np.max(np.abs(model.actuator_ctrlrange[ids]))) if limited.all() else 1.0
+        deadzone_trials = _deadzone_trials(limit, None if commands is None else commands[:, ids])
         out += [
             Candidate("gear", name, 1.0, 0.1, 3.0, 0.05, "smooth"),
             Candidate("action_gain", name, 1.0, 0.1, 3.0, 0.05, "smooth"),
             Candidate("action_bias", name, 0.0, -0.5 * limit, 0.5 * limit, 0.05 * limit, "smooth"),
-            Candidate("action_deadzone", name, 0.0, 0.0, 0.9 * limit, 0.0, "threshold",
-                      trials=(0.1 * limit, 0.3 * limit, 0.5 * limit)),
+            Candidate("action_deadzone", name, 0.0, 0.0, 0.9 * limit, 0.0, "threshold", trials=deadzone_trials),
             Candidate("action_saturation", name, limit, 0.05 * limit, limit, 0.0, "threshold",
                       trials=(0.8 * limit, 0.5 * limit, 0.25 * limit)),
             Candidate("action_delay", name, 0, 1, 3, 1, "integer", trials=(1.0, 2.0)),
@@ -306,6 +307,27 @@ def candidate_library(source: SourceSimulator, *, obs_bias_dims: Iterable[int] |
     # Kinds the installed vocabulary lacks are skipped, never guessed at.
     known = [c for c in out if c.kind in EFFECT_KINDS]
     return [c for c in map(_within_effect_range, known) if c is not None]
+
+
+# Where the screen also tries a dead zone, as quantiles of the recorded command magnitudes: a
+# threshold only shows where commands cross it, so data of small commands (a balancing robot near
+# upright) need trials among them, not only at fixed fractions of the limit. A saturation keeps
+# its fixed trials: one just below the largest commands mimics command noise clipped at the
+# actuator's own limit, which the loop must leave to the noise estimate.
+DEADZONE_QUANTILES = (0.25, 0.5, 0.75, 0.9)
+
+
+def _deadzone_trials(limit: float, commands: np.ndarray | None) -> tuple[float, ...]:
+    """Screen trials of a dead zone on actuators whose commands are ``commands`` (rows x those
+    actuators; ``None``: not known): fixed fractions of the command limit, plus the recorded
+    magnitudes' quantiles when the data give them."""
+    trials = [0.1 * limit, 0.3 * limit, 0.5 * limit]
+    if commands is not None and commands.size:
+        magnitudes = np.abs(np.asarray(commands, dtype=float)).ravel()
+        magnitudes = magnitudes[np.isfinite(magnitudes)]
+        if magnitudes.size:
+            trials += [float(q) for q in np.quantile(magnitudes, DEADZONE_QUANTILES) if q > 0]
+    return tuple(sorted(set(trials)))
 
 
 def _within_effect_range(candidate: Candidate) -> Candidate | None:

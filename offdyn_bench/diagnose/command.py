@@ -23,6 +23,10 @@ def diagnose_command(
     horizon: int = typer.Option(10, help="H of the H-step open-loop error, in control steps (1 to 1000)"),
     search_horizon: int = typer.Option(1, help="steps ahead the search compares (1 to 1000): more than 1 for "
                                                "high-rate data whose one-step change is below the sensor noise"),
+    search_target: str = typer.Option("auto", help="what the search compares predictions with: observations, "
+                                                   "states (the stored physics states: the dynamics without the "
+                                                   "sensors) or auto (states where the data store them and the "
+                                                   "sensors differ from them)"),
     max_effects: int = typer.Option(4, help="add at most this many effects (0 to 20)"),
     seed: int = typer.Option(0, help="seed of the train/held-out split and the subsets"),
 ) -> None:
@@ -33,7 +37,8 @@ def diagnose_command(
     from offdyn_bench.diagnose.report import unwritable_reason
 
     try:
-        settings = DiagnosisSettings(horizon=horizon, search_horizon=search_horizon, max_effects=max_effects, seed=seed)
+        settings = DiagnosisSettings(horizon=horizon, search_horizon=search_horizon, max_effects=max_effects, seed=seed,
+                                     search_target=search_target)  # type: ignore[arg-type]  # checked there
     except OffdynError as error:
         raise _fail(str(error)) from None
     for path, directory, option in ((out, True, "--out"), (json_path, False, "--json")):

@@ -25,9 +25,12 @@ from offdyn_bench.diagnose.data import Transitions, load_transitions
 from offdyn_bench.diagnose.identifiability import Identifiability, identifiability
 from offdyn_bench.diagnose.residual import (
     NUMERICAL_FLOOR,
+    SEARCH_TARGETS,
     ErrorSummary,
     Hypothesis,
+    ObservationCheck,
     ResidualEvaluator,
+    SearchTarget,
     block_improvement_z,
 )
 from offdyn_bench.diagnose.search import Fit, fit, screen
@@ -75,6 +78,11 @@ class DiagnosisSettings:
     explained_margin: float = 0.1
     """A final held-out error within this fraction above the floor leaves no unexplained residual."""
     heldout_fraction: float = 0.3
+    search_target: SearchTarget = "auto"
+    """What the search compares predictions with: ``observations`` (the recorded ones), ``states``
+    (the observation read off the stored state: the dynamics without the sensors, whose delay and
+    offset are then read off the two recordings' difference), or ``auto``: the stored states where
+    the data have them and the sensors differ from them, the observations otherwise."""
     screen_rows: int = 600
     fit_rows: int = 1500
     seed: int = 0
@@ -86,6 +94,9 @@ class DiagnosisSettings:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
                 raise InvalidParameterError("diagnosis settings", name, value, f"an integer in [{low}, {high}]")
+        if self.search_target not in SEARCH_TARGETS:
+            raise InvalidParameterError("diagnosis settings", "search_target", self.search_target,
+                                        f"one of {', '.join(SEARCH_TARGETS)}")
         fractions = {"fit_score_ratio": (0.0, 1.0), "min_relative_gain": (0.0, 1.0), "min_z": (0.0, 100.0),
                      "floor_tolerance": (0.0, 1.0), "search_margin": (0.0, 10.0), "explained_margin": (0.0, 10.0),
                      "heldout_fraction": (0.05, 0.95)}
@@ -260,12 +271,15 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
         data = load_transitions(data, nq=source.base_model.nq, nv=source.base_model.nv)
     evaluator = ResidualEvaluator(source, data, horizon=settings.horizon, heldout_fraction=settings.heldout_fraction,
                                   screen_rows=settings.screen_rows, fit_rows=settings.fit_rows, seed=settings.seed,
-                                  search_horizon=settings.search_horizon)
+                                  search_horizon=settings.search_horizon, search_target=settings.search_target)
     check = evaluator.observation_check
-    # Observation effects only where the stored states show the sensors disagree with the state.
+    # Observation effects only where the stored states show the sensors disagree with the state;
+    # none when the search runs on the stored states (the sensors are read off them directly).
     recorded_qpos = source.qpos_qvel(evaluator.states[evaluator.usable])[:, :source.base_model.nq]
-    library = candidate_library(source, obs_bias_dims=check.bias_allowed, obs_delay_dims=check.delay_allowed,
-                                qpos=recorded_qpos)
+    on_states = evaluator.search_on_states
+    library = candidate_library(source, obs_bias_dims=() if on_states else check.bias_allowed,
+                                obs_delay_dims=() if on_states else check.delay_allowed, qpos=recorded_qpos,
+                                commands=evaluator.applied_actions(())[evaluator.usable])
     clock["setup"] = time.perf_counter() - started
 
     tick = time.perf_counter()
@@ -282,6 +296,25 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     current = first
     steps: list[Step] = []
     stop_reason = f"reached the limit of {settings.max_effects} effects"
+    # The sensors, read off the stored states: their effects come first and stay as measured; the
+    # search below works on the dynamics alone (``hypothesis``), and errors are reported for both.
+    sensed: Hypothesis = ()
+    sensed_chosen: list[Chosen] = []
+    if on_states:
+        tick = time.perf_counter()
+        for candidate, value, interval in _sensor_effects(check):
+            before_residual, = evaluator.residuals([sensed], "heldout")
+            sensed = sensed + (candidate.effect(value),)
+            sensed_chosen.append((candidate, value, interval, False))
+            after_residual, = evaluator.residuals([sensed], "heldout")
+            after = _errors(evaluator, sensed)
+            steps.append(Step(effect=_effect_json(candidate, value), interval=interval, on_bound=False, before=current,
+                              after=after, heldout_gain_z=float(min(block_improvement_z(before_residual, after_residual), 1e6)),
+                              equivalent_alternatives=(), screened=((f"{candidate.label}: read off the stored states", 0.0),),
+                              refitted=()))
+            history[candidate.label] = [candidate.parameter_value(value)]
+            current = after
+        clock["validation"] += time.perf_counter() - tick
 
     for _ in range(settings.max_effects):
         # Searching on costs a screen; a model already this close to the floor has nothing left
@@ -341,7 +374,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
             clock["fits"] += time.perf_counter() - tick
 
         tick = time.perf_counter()
-        after = _errors(evaluator, hypothesis)
+        after = _errors(evaluator, sensed + hypothesis)
         clock["validation"] += time.perf_counter() - tick
         step_interval = tuple(_interval_json(chosen_fit.candidate, *chosen_fit.interval))
         steps.append(Step(effect=_effect_json(chosen_fit.candidate, chosen_fit.value),
@@ -363,14 +396,14 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     if identified is not None and identified.unresolved:
         hypothesis, chosen, gauge_notes = _fix_gauge(evaluator, hypothesis, chosen, identified, settings)
         if gauge_notes:
-            current = _errors(evaluator, hypothesis)
+            current = _errors(evaluator, sensed + hypothesis)
             identified = _identify(evaluator, hypothesis, chosen, settings.seed)
     clock["validation"] += time.perf_counter() - tick
     unexplained = not _at_floor(_search_summary(evaluator, hypothesis), search_floor, search_floor_dims, settings,
                                  settings.explained_margin)
     tick = time.perf_counter()
     # A residual the state and command predict is a model error: no noise fit may absorb it.
-    predictability = residual_predictability(evaluator, hypothesis, seed=settings.seed) if unexplained else None
+    predictability = residual_predictability(evaluator, sensed + hypothesis, seed=settings.seed) if unexplained else None
     clock["validation"] += time.perf_counter() - tick
     if predictability is not None and predictability.systematic:
         stop_reason += (f"; the rest is systematic (state and command predict {predictability.heldout_r2:.0%} of it "
@@ -378,10 +411,10 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     elif unexplained and len(chosen) < settings.max_effects:
         # What no deterministic effect explains may still be the spread of a noisy command.
         tick = time.perf_counter()
-        noise = estimate_action_noise(evaluator, hypothesis)
+        noise = estimate_action_noise(evaluator, sensed + hypothesis)
         # The noise must also explain how the error grows over H steps: kicks that are
         # independent from step to step add up far less than a model error that keeps pushing.
-        growth = None if noise is None else horizon_under_action_noise(evaluator, hypothesis, noise.std,
+        growth = None if noise is None else horizon_under_action_noise(evaluator, sensed + hypothesis, noise.std,
                                                                        seed=settings.seed)
         clock["validation"] += time.perf_counter() - tick
         if noise is not None and growth is not None and not growth.consistent:
@@ -398,6 +431,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
             unexplained = False
             stop_reason += f"; the rest is action noise (a command correction explains {noise.share:.0%} of it)"
 
+    chosen = sensed_chosen + chosen
     effects_added = []
     for c, v, (lo, hi), bound in chosen:
         entry = {**_effect_json(c, v), "interval": _interval_json(c, lo, hi), "interval_method": "profile grid"
@@ -405,6 +439,9 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                                                   else "Gauss-Newton (rows independent)"), "on_bound": bound}
         if c.kind == "action_noise":
             entry["interval_method"] = "spread of per-step command corrections"
+        elif any(c is s for s, *_ in sensed_chosen):
+            entry["interval_method"] = ("read off the stored states (exact)" if c.search == "integer" else
+                                        "read off the stored states (95%: 1.96 standard errors across episodes)")
         elif identified is not None and c.label in identified.intervals:
             entry["interval"] = list(identified.intervals[c.label])
             entry["interval_method"] = f"episode bootstrap ({identified.resamples} resamples, linearized)"
@@ -414,6 +451,11 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     clock["total"] = time.perf_counter() - started
     notes = list(evaluator.notes)
     notes.extend(gauge_notes)
+    for drift in () if identified is None else identified.drifts:
+        notes.append(f"{drift.label} is {drift.earlier:.4g} on the earlier half of the episodes and {drift.later:.4g} "
+                     f"on the later half ({drift.z:g} standard errors apart): it changes over the recording (wear, "
+                     "warming up) or with what the halves visit; the effects of the vocabulary are constant, so "
+                     "the value reported is a compromise the calibrated model cannot improve on")
     if predictability is not None and predictability.systematic:
         notes.append(f"the remaining residual is predictable from state and command (held-out R^2 "
                      f"{predictability.heldout_r2:.2f}): a model error outside what was added, not noise")
@@ -445,6 +487,18 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
 
 
 Chosen = tuple[Candidate, float, tuple[float, float], bool]
+
+
+def _sensor_effects(check: ObservationCheck) -> list[tuple[Candidate, float, tuple[float, float]]]:
+    """The observation delays and offsets the stored states show, as candidates at their measured
+    values (the delay in whole control steps, the offset with its 95% interval across episodes)."""
+    out: list[tuple[Candidate, float, tuple[float, float]]] = []
+    for index, steps in sorted(check.delay_steps.items()):
+        out.append((Candidate("obs_delay", index, 0, 1, 2, 1, "integer"), float(steps), (float(steps), float(steps))))
+    for index, (value, standard_error) in sorted(check.bias_values.items()):
+        out.append((Candidate("obs_bias", index, 0.0, -1e3, 1e3, 0.01, "smooth"), value,
+                    (value - 1.96 * standard_error, value + 1.96 * standard_error)))
+    return out
 
 
 def _identify(evaluator: ResidualEvaluator, hypothesis: Hypothesis, chosen: list[Chosen],

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -23,6 +23,8 @@ from offdyn_bench.effects.channel import ChannelEffect
 from offdyn_bench.effects.model import ModelEffect
 
 Hypothesis = tuple[Effect, ...]
+SearchTarget = Literal["auto", "observations", "states"]
+SEARCH_TARGETS: tuple[str, ...] = ("auto", "observations", "states")
 
 # The simulator restarted exactly reproduces its own steps to ~1e-15: anything below this is numerics.
 NUMERICAL_FLOOR = 1e-6
@@ -78,7 +80,9 @@ class ResidualEvaluator:
 
     def __init__(self, source: SourceSimulator, data: Transitions, *, horizon: int = 10,
                  heldout_fraction: float = 0.3, screen_rows: int = 2000, fit_rows: int = 5000,
-                 seed: int = 0, search_horizon: int = 1) -> None:
+                 seed: int = 0, search_horizon: int = 1, search_target: SearchTarget = "auto") -> None:
+        if search_target not in SEARCH_TARGETS:
+            raise DiagnosisInputError(f"search_target must be one of {', '.join(SEARCH_TARGETS)}, got {search_target!r}")
         source.check_data(data)
         self.source = source
         self.data = data
@@ -162,6 +166,49 @@ class ResidualEvaluator:
         note = self.observation_check.note(source.observation_map.names)
         if note is not None:
             self.notes.append(note)
+        self.search_on_states = False
+        if search_target == "states" and self.rebuilt:
+            raise DiagnosisInputError("search_target='states' needs stored qpos/qvel in the data; these data have none")
+        if search_target == "states" or (search_target == "auto" and self.observation_check.sensors_differ):
+            self._search_on_stored_states(rng, screen_rows, fit_rows)
+
+    def _search_on_stored_states(self, rng: np.random.Generator, screen_rows: int, fit_rows: int) -> None:
+        """Make the search compare predicted physics with the stored states ``search_horizon``
+        steps later, read through the observation map, instead of with the recorded observations.
+
+        Where the sensors do not read the stored state exactly (noise, a latency, an offset), the
+        recorded observation mixes the sensors into every residual: at a high control rate the
+        noise of one reading can exceed what the dynamics move in a step, and the dynamics effects
+        drown in it. The stored states carry the physics without the sensors, so the dynamics are
+        searched on them, and the sensors are read off the difference between the two recordings
+        (:meth:`_check_observation_channel`). The reported errors stay those of the recorded
+        observations. Windows need their end state, so each episode's last ``search_horizon``
+        rows cannot start one; with too few windows left the search stays on the observations.
+        """
+        k = self.search_horizon
+
+        def has_end(starts: np.ndarray) -> np.ndarray:
+            ends = starts + k
+            ok = ends < self.data.size
+            starts, ends = starts[ok], ends[ok]
+            return starts[(self.episode[ends] == self.episode[starts]) & self.usable[ends]]
+
+        train, heldout = has_end(self.search_starts["train"]), has_end(self.search_starts["heldout"])
+        if len(train) < 20 or len(heldout) < 10:
+            self.notes.append("too few windows end inside an episode to search on the stored states: the search "
+                              "compares recorded observations")
+            return
+        screen = np.sort(rng.choice(train, size=min(screen_rows, len(train)), replace=False))
+        fit = np.sort(rng.choice(train, size=min(fit_rows, len(train)), replace=False))
+        self.search_starts = {"train": train, "heldout": heldout, "screen": screen, "fit": fit}
+        self.search_spread = _safe_spread(self.state_reading(train + k) - self.state_reading(train))
+        self.search_on_states = True
+        self.notes.append("the search compares predictions with the stored states (the sensors differ from them); "
+                          "the errors reported are against the recorded observations")
+
+    def state_reading(self, rows: np.ndarray) -> np.ndarray:
+        """The observation (mapped dimensions) read off the stored state of ``rows``, no sensor effects."""
+        return self.source.observation_map.observe(self.source.qpos_qvel(self.states[rows]))
 
     def _check_unobserved_coordinates(self) -> None:
         """The rebuilt state sets positions the observation lacks (Hopper's x) to their reference
@@ -239,9 +286,10 @@ class ResidualEvaluator:
 
     # --- prediction -----------------------------------------------------------------------
     def predict(self, hypotheses: Sequence[Hypothesis], starts: np.ndarray, horizon: int,
-                cache_key: str | None = None) -> list[np.ndarray]:
+                cache_key: str | None = None, sensors: bool = True) -> list[np.ndarray]:
         """Predicted observations (mapped dimensions) ``horizon`` steps after each start row, for
-        each hypothesis; hypotheses with the same physics share one rollout."""
+        each hypothesis; hypotheses with the same physics share one rollout. ``sensors=False``
+        reads the predicted state through the observation map only, without observation effects."""
         keys = [physics_key(h, self.rebuilt) for h in hypotheses]
         found: dict[tuple[Effect, ...], np.ndarray] = {}
         todo: dict[tuple[Effect, ...], Hypothesis] = {}
@@ -294,6 +342,8 @@ class ResidualEvaluator:
                     if len(self._cache) > 64:
                         self._cache.clear()
                     self._cache[(key, cache_key, horizon)] = trajectory
+        if not sensors:
+            return [self.source.observation_map.observe(found[key][:, -1]) for key in keys]
         return [self._observation_channel(h, found[key], starts, horizon) for h, key in zip(hypotheses, keys)]
 
     def _observation_effects(self, hypothesis: Hypothesis) -> Iterator[tuple[Any, list[int]]]:
@@ -338,6 +388,11 @@ class ResidualEvaluator:
         """Residuals the search works on: ``search_horizon`` steps open loop from the starts of
         ``subset`` (``screen``, ``fit``, ``train`` or ``heldout``); one step by default."""
         k = self.search_horizon
+        if self.search_on_states:
+            starts = self.search_starts[subset]
+            recorded = self.state_reading(starts + k)
+            predictions = self.predict(hypotheses, starts, k, cache_key=f"search-{subset}", sensors=False)
+            return [(p - recorded) / self.search_spread for p in predictions]
         if k == 1:
             return self.residuals(hypotheses, subset)
         starts = self.search_starts[subset]
@@ -347,7 +402,10 @@ class ResidualEvaluator:
 
     def search_floor(self) -> tuple[float, np.ndarray]:
         """The noise floor in the search's units: the endpoint's sensor noise over the spread of the
-        ``search_horizon``-step change (the start state is the stored one, exact)."""
+        ``search_horizon``-step change (the start state is the stored one, exact). Searching on
+        the stored states, no sensor is involved: the floor is the numerical one."""
+        if self.search_on_states:
+            return NUMERICAL_FLOOR, np.full(self.dims.size, NUMERICAL_FLOOR)
         floor, per_dim = self.noise_floor()
         if self.search_horizon == 1:
             return floor, per_dim
@@ -403,6 +461,8 @@ class ResidualEvaluator:
         centred = np.std(now, axis=0)
         floor = centred.copy()
         bias, delay = [], []
+        delay_steps: dict[int, int] = {}
+        bias_values: dict[int, tuple[float, float]] = {}
         episodes = self.episode[rows]
         for c, d in enumerate(mapped):
             if rms_now[c] <= AGREEMENT_TOLERANCE:
@@ -410,15 +470,23 @@ class ResidualEvaluator:
             best_shift = min(range(len(DELAY_SHIFTS)), key=lambda i: shifted[i][c])
             # Reading an earlier state must remove more of the difference than chance would: with
             # noisy sensors a delay removes only the state's change over a step, a small part.
-            if shifted[best_shift][c] < centred[c] * (1.0 - 3.0 / np.sqrt(len(rows))):
+            late = shifted[best_shift][c] < centred[c] * (1.0 - 3.0 / np.sqrt(len(rows)))
+            if late:
                 delay.append(d)
+                delay_steps[d] = DELAY_SHIFTS[best_shift]
                 floor[c] = shifted[best_shift][c]
-            if _mean_is_significant(now[:, c], episodes):
+            # An offset is read against the state the sensor really reports (the delayed one):
+            # against the current state, a late sensor's difference carries the state's change.
+            aligned = self._discrepancy(rows, delay_steps[d])[:, c] if late else now[:, c]
+            if _mean_is_significant(aligned, episodes):
                 bias.append(d)
+                offset = aligned * self.spread[c]
+                bias_values[d] = (float(offset.mean()), _episode_standard_error(offset, episodes))
         floor = np.maximum(floor, NUMERICAL_FLOOR)
         return ObservationCheck(max_discrepancy=float(np.max(np.abs(now))) if now.size else 0.0,
                                 bias_allowed=tuple(bias), delay_allowed=tuple(delay), floor_per_dimension=floor,
-                                floor_source="measured: the recorded observations against the stored states")
+                                floor_source="measured: the recorded observations against the stored states",
+                                delay_steps=delay_steps, bias_values=bias_values)
 
     def noise_floor(self) -> tuple[float, np.ndarray]:
         """Normalized one-step error a perfect model would still make, and its per-dimension part:
@@ -441,6 +509,16 @@ class ObservationCheck:
     """Observation indices where an ``obs_delay`` is a candidate."""
     floor_per_dimension: np.ndarray
     floor_source: str
+    delay_steps: dict[int, int] = dataclasses.field(default_factory=dict)
+    """Per observation index with a delay: the control steps the sensor lags the stored state."""
+    bias_values: dict[int, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    """Per observation index with a bias: the offset (observation units) and its standard error
+    across episodes, measured against the state the sensor reports."""
+
+    @property
+    def sensors_differ(self) -> bool:
+        """Whether some recorded observation differs from the one its stored state implies."""
+        return self.max_discrepancy is not None and self.max_discrepancy > AGREEMENT_TOLERANCE
 
     def note(self, names: Sequence[str]) -> str | None:
         if self.max_discrepancy is None:
@@ -464,13 +542,24 @@ AGREEMENT_TOLERANCE = 1e-6
 def _mean_is_significant(values: np.ndarray, episodes: np.ndarray) -> bool:
     """Is the mean of ``values`` non-zero beyond chance? Episodes are the independent units
     (neighbouring rows are correlated); with one episode, blocks of 50 rows stand in for them."""
-    groups = np.unique(episodes)
-    if len(groups) >= 3:
-        means = np.array([values[episodes == g].mean() for g in groups])
-    else:
-        means = np.array([chunk.mean() for chunk in np.array_split(values, max(2, len(values) // 50))])
+    means = _unit_means(values, episodes)
     se = means.std(ddof=1) / np.sqrt(len(means))
     return abs(float(means.mean())) > 4.0 * se + 1e-6
+
+
+def _unit_means(values: np.ndarray, episodes: np.ndarray) -> np.ndarray:
+    """Means of ``values`` per independent unit: per episode, or per block of 50 rows with fewer
+    than three episodes (neighbouring rows are correlated)."""
+    groups = np.unique(episodes)
+    if len(groups) >= 3:
+        return np.array([values[episodes == g].mean() for g in groups])
+    return np.array([chunk.mean() for chunk in np.array_split(values, max(2, len(values) // 50))])
+
+
+def _episode_standard_error(values: np.ndarray, episodes: np.ndarray) -> float:
+    """Standard error of the mean of ``values``, the units counted as :func:`_unit_means` does."""
+    means = _unit_means(values, episodes)
+    return float(means.std(ddof=1) / np.sqrt(len(means)))
 
 
 def _safe_spread(change: np.ndarray) -> np.ndarray:

@@ -159,6 +159,12 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
     error is piecewise smooth (a saturation) or piecewise constant (a dead zone) and gradients
     mislead. Returns the value and the resolution it was located to."""
     low, high = candidate.low, candidate.high
+    if candidate.kind == "action_deadzone":
+        # Every threshold at or above the largest recorded command zeroes all of them alike: the
+        # data tell thresholds apart only below it, so the grids spend their points there.
+        largest = _largest_command(evaluator, hypothesis, candidate)
+        if low < largest < high:
+            high = largest
     best, step = candidate.nominal, high - low
     levels = 3 if candidate.kind == "action_deadzone" else 5
     for _ in range(levels):
@@ -192,6 +198,13 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
             if exhaustive:  # located between two neighbouring recorded commands
                 break
     return best, step
+
+
+def _largest_command(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate) -> float:
+    """The largest command magnitude on the actuators ``candidate`` acts on, in the training rows."""
+    commands = evaluator.applied_actions(hypothesis)[evaluator.search_starts["train"]]
+    mask = candidate.effect(candidate.nominal).dimension_mask(commands.shape[1], evaluator.source.base_model)  # type: ignore[attr-defined]
+    return float(np.max(np.abs(commands[:, mask]), initial=0.0))
 
 
 def _residuals_one_by_one(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate,

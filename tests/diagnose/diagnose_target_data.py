@@ -15,11 +15,12 @@ from offdyn_bench.diagnose import Diagnosis
 
 def record(effects: Sequence[dict[str, Any]], steps: int, *, robot: str = "Hopper", seed: int = 0,
            with_state: bool = True, edit_model: Callable[[Any], None] | None = None,
-           **env_kwargs: Any) -> dict[str, np.ndarray]:
+           command_scale: float = 1.0, **env_kwargs: Any) -> dict[str, np.ndarray]:
     """Roll a random behaviour policy with smooth and jumpy parts (excites every actuator over its
     whole range) in ``robot`` with ``effects``; return the npz arrays of the diagnosis contract.
     ``edit_model`` changes the compiled target model in place (an effect outside the vocabulary);
-    ``env_kwargs`` go to the robot's Gymnasium constructor."""
+    ``command_scale`` shrinks every command (a gentle behaviour policy, commands in
+    ``[-command_scale, command_scale]``); ``env_kwargs`` go to the robot's Gymnasium constructor."""
     env = make_robot_env(robot, effects=effects, **env_kwargs)
     if edit_model is not None:
         edit_model(env.unwrapped.model)
@@ -36,7 +37,7 @@ def record(effects: Sequence[dict[str, Any]], steps: int, *, robot: str = "Hoppe
         frequency = rng.uniform(0.05, 0.3, size)
         for t in range(200):
             smooth = np.sin(frequency * t + phase)
-            action = np.clip(0.6 * smooth + rng.uniform(-0.7, 0.7, size), -1, 1)
+            action = command_scale * np.clip(0.6 * smooth + rng.uniform(-0.7, 0.7, size), -1, 1)
             next_obs, _, terminated, truncated, info = env.step(action)
             truncated = truncated or t == 199 or len(columns["actions"]) + 1 >= steps
             columns["observations"].append(obs)

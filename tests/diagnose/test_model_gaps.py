@@ -182,14 +182,18 @@ def test_a_command_miscalibrated_per_episode_is_not_called_noise() -> None:
 def test_a_longer_search_horizon_finds_effects_and_keeps_the_floor_in_its_units() -> None:
     """The search can compare predictions several steps ahead (for high-rate data whose one-step
     change is below the sensor noise): it still names the effect, and its floor is the same sensor
-    noise measured against the larger change over the search horizon."""
+    noise measured against the larger change over the search horizon. (On the recorded
+    observations: data without stored states have nothing else; test_stored_state_search.py
+    covers the search on stored states.)"""
     hidden = [{"kind": "obs_noise", "std": 0.005}, {"kind": "gear", "target": "foot_joint", "scale": 0.7}]
     data = Transitions(**record(hidden, STEPS, seed=3))
-    result = diagnose("Hopper-v5", data, DiagnosisSettings(screen_rows=400, fit_rows=700, search_horizon=5))
+    result = diagnose("Hopper-v5", data, DiagnosisSettings(screen_rows=400, fit_rows=700, search_horizon=5,
+                                                           search_target="observations"))
     assert [(e["kind"], e["target"]) for e in result.effects_added] == [("gear", "foot_joint")]
     assert result.effects_added[0]["value"] == pytest.approx(0.7, rel=0.10)
     assert not result.unexplained_residual and result.to_json()["search_horizon"] == 5
-    evaluator = ResidualEvaluator(SourceSimulator("Hopper-v5"), data, screen_rows=400, fit_rows=700, search_horizon=5)
+    evaluator = ResidualEvaluator(SourceSimulator("Hopper-v5"), data, screen_rows=400, fit_rows=700, search_horizon=5,
+                                  search_target="observations")
     _, one_step = evaluator.noise_floor()
     _, five_steps = evaluator.search_floor()
     np.testing.assert_allclose(five_steps, np.maximum(one_step * evaluator.spread / evaluator.search_spread, 1e-6))
