@@ -401,6 +401,12 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     clock["validation"] += time.perf_counter() - tick
     unexplained = not _at_floor(_search_summary(evaluator, hypothesis), search_floor, search_floor_dims, settings,
                                  settings.explained_margin)
+    drifting = [] if identified is None else [drift.label for drift in identified.drifts]
+    if drifting:
+        # However small the residual left, no constant effect explains every episode.
+        unexplained = True
+        stop_reason += (f"; {', '.join(drifting)} drift{'s' if len(drifting) == 1 else ''} between the earlier and "
+                        "the later episodes: no constant effect explains them all")
     tick = time.perf_counter()
     # A residual the state and command predict is a model error: no noise fit may absorb it.
     predictability = residual_predictability(evaluator, sensed + hypothesis, seed=settings.seed) if unexplained else None
@@ -408,7 +414,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     if predictability is not None and predictability.systematic:
         stop_reason += (f"; the rest is systematic (state and command predict {predictability.heldout_r2:.0%} of it "
                         "on held-out episodes), not noise")
-    elif unexplained and len(chosen) < settings.max_effects:
+    elif unexplained and not drifting and len(chosen) < settings.max_effects:
         # What no deterministic effect explains may still be the spread of a noisy command.
         tick = time.perf_counter()
         noise = estimate_action_noise(evaluator, sensed + hypothesis)

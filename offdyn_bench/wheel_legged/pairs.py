@@ -13,8 +13,9 @@ the sensing of a real robot (a one-step latency and noise), so gap diagnosis can
 | ``obs_delay`` on every observation | 1 control step (5 ms) | sensor and bus latency |
 | ``obs_noise`` per observation | tilt 0.002 rad, displacement 0.002 m, tilt rate 0.02 rad/s, velocity 0.01 m/s | IMU and encoder noise |
 
-Wear that *drifts* (friction falling as the tyre wears within a recording) is not modelled: every
-effect of the vocabulary is constant over an episode, so the target has the worn coefficient.
+The target has the worn coefficient, constant: every effect of the vocabulary is constant, and a
+recording of a few minutes wears a real tyre negligibly. Data whose tyres do wear within the
+recording are what gap diagnosis reports as drift (``tests/wheel_legged/test_wheel_legged_diagnosis.py``).
 """
 
 from __future__ import annotations
