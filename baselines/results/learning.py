@@ -163,6 +163,41 @@ def evaluate_clean_controller(task: str, runs: Path) -> Path:
     return evaluation
 
 
+def episode_lengths(task: str, out: Path) -> Path:
+    """How long the final policies of a run stay up: the episodes of its ``evaluation.json`` replayed
+    (the same agents and episode seeds; each return must match the recorded one), per seed the length
+    of every episode and whether it ran to the time limit (truncated) rather than ending in a fall."""
+    from offdyn_bench.envs import flat_observations
+    from offdyn_bench.evaluate import _act, load_run_agents
+    from offdyn_bench.tasks import get_task
+
+    path = out / "episode_lengths.json"
+    if path.exists():
+        return path
+    evaluation = json.loads((out / "evaluation.json").read_text())
+    recorded = _returns_by_seed(evaluation)
+    env = flat_observations(get_task(task).make("target"))
+    record = {}
+    for seed, agent in load_run_agents(out).agents:
+        lengths, full = [], []
+        for episode_seed, expected in zip(evaluation["episode_seeds"], recorded[str(seed)], strict=True):
+            observation, _ = env.reset(seed=int(episode_seed))
+            total, steps, terminated, truncated = 0.0, 0, False, False
+            while not (terminated or truncated):
+                observation, reward, terminated, truncated, _ = env.step(
+                    _act(agent, observation, env.action_space, f"seed {seed}"))
+                total, steps = total + float(reward), steps + 1
+            if not np.isclose(total, expected, rtol=1e-9, atol=1e-6):
+                raise SystemExit(f"error: {out} seed {seed}, episode seed {episode_seed}: replayed return {total} "
+                                 f"differs from the evaluation's {expected}")
+            lengths.append(steps)
+            full.append(bool(truncated and not terminated))
+        record[str(seed)] = {"lengths": lengths, "to_time_limit": full}
+    env.close()
+    path.write_text(json.dumps(record) + "\n")
+    return path
+
+
 def _timed(command: list[str], log: Path, out: Path, stage: str) -> None:
     """``_run``, and its wall time in seconds into ``out/wall_time.json`` (kept when a later call resumes)."""
     start = time.monotonic()
@@ -255,8 +290,16 @@ def summarize(task: str, runs: Path, names: list[str], steps: int = STEPS, mode:
                          "target_return_per_seed": per_seed,
                          "iqm_return": float(iqm(np.array([[r] for r in per_seed.values()]))),
                          "iqm_normalized": interval.point, "ci95_normalized": [interval.low, interval.high]}
-        if len(refs) > 2:  # not the published InvertedPendulum format: wall times too
+        if len(refs) > 2:  # not the published InvertedPendulum format: wall times and episode lengths too
             methods[name]["wall_time_s"] = _wall_time(run_folder(runs, name))
+            lengths_file = run_folder(runs, name) / "episode_lengths.json"
+            if lengths_file.exists():
+                lengths = json.loads(lengths_file.read_text())
+                methods[name]["mean_episode_length_per_seed"] = {
+                    seed: float(np.mean(entry["lengths"])) for seed, entry in lengths.items()}
+                methods[name]["episodes_to_time_limit"] = (
+                    f"{sum(sum(e['to_time_limit']) for e in lengths.values())} of "
+                    f"{sum(len(e['to_time_limit']) for e in lengths.values())}")
     summary = {"task": task, "steps": steps, "seeds": list(range(SEEDS)), "eval_episodes_per_seed": EVAL_EPISODES,
                "dataset": (f"collect:<sac-source run>:{DATASET_TRANSITIONS} (seed-0 policy of sac-source)"
                            if mode == "collect" else official_dataset_id(task)),
@@ -332,8 +375,8 @@ def markdown(summary: dict) -> str:
     timed = any("wall_time_s" in m for m in summary["methods"].values())
     lines = [f"# Learning benchmark: `{summary['task']}`", "", header, "",
              "| method | " + " | ".join(f"seed {s}" for s in seeds) + " | IQM return | IQM normalized [95% CI] |"
-             + (" train / evaluate wall time |" if timed else ""),
-             "|---" * (len(seeds) + 3 + timed) + "|"]
+             + (" episodes to the time limit | train / evaluate wall time |" if timed else ""),
+             "|---" * (len(seeds) + 3 + 2 * timed) + "|"]
     for name in names:
         m = summary["methods"][name]
         cells = [f"{m['target_return_per_seed'][s]:.1f}" for s in seeds]
@@ -342,7 +385,8 @@ def markdown(summary: dict) -> str:
                f"{m['iqm_normalized']:.1f} [{low:.1f}, {high:.1f}] |")
         if timed:
             t = m.get("wall_time_s", {})
-            row += f" {_seconds(t.get('train_s'))} / {_seconds(t.get('evaluate_s'))} |"
+            row += (f" {m.get('episodes_to_time_limit', 'n/a')} |"
+                    f" {_seconds(t.get('train_s'))} / {_seconds(t.get('evaluate_s'))} |")
         lines.append(row)
     lines += ["", "Claims of the papers at this scale:", ""]
     lines += [f"- {claim}: {'holds' if c['holds'] else 'does not hold'} "
@@ -401,7 +445,11 @@ def main(argv: list[str] | None = None) -> None:
         ("--methods", f"'{args.methods}'", f"'{','.join(METHODS)}'" if not args.merge else f"'{args.methods}'"))
         if value != default)
     command = f"python -m baselines.results.learning --task {args.task}{options}"
-    summary = summarize(args.task, runs, names, steps, mode, references(args.task, runs, mode), command)
+    refs = references(args.task, runs, mode)
+    if len(refs) > 2:  # not the published InvertedPendulum format: how long the policies stay up, too
+        for n in names:
+            episode_lengths(args.task, run_folder(runs, n))
+    summary = summarize(args.task, runs, names, steps, mode, refs, command)
     stem = RESULTS / f"learning-{args.task}"
     if args.merge and stem.with_suffix(".json").exists():
         summary = merged(json.loads(stem.with_suffix(".json").read_text()), summary)

@@ -47,6 +47,9 @@ def test_summary_of_an_official_dataset_task_records_its_references_and_wall_tim
         returns = {seed: [level + 1000.0 * seed] * 3 for seed in range(learning.SEEDS)}
         (out / "evaluation.json").write_text(json.dumps(_evaluation(returns)))
         (out / "wall_time.json").write_text(json.dumps({"train_s": 60.0, "evaluate_s": 6.0}))
+    lengths = {str(seed): {"lengths": [6000, 6000, 300], "to_time_limit": [True, True, False]}
+               for seed in range(learning.SEEDS)}
+    (learning.run_folder(runs, "dap") / "episode_lengths.json").write_text(json.dumps(lengths))
     refs = {"random_return": 1000.0, "best_return": 101_000.0,
             "random_reference": {"source": "the manifest's random reference"},
             "best_reference": {"label": "clean controller", "agent": "pkg.mod:factory", "returns": [101_000.0]}}
@@ -60,10 +63,12 @@ def test_summary_of_an_official_dataset_task_records_its_references_and_wall_tim
     assert dap["iqm_return"] == pytest.approx(32_000.0)  # IQM of 30k..34k
     assert dap["iqm_normalized"] == pytest.approx(31.0)  # (32k - 1k) / (101k - 1k)
     assert dap["wall_time_s"] == {"train_s": 60.0, "evaluate_s": 6.0}
+    assert dap["episodes_to_time_limit"] == "10 of 15" and dap["mean_episode_length_per_seed"]["0"] == 4100.0
+    assert "episodes_to_time_limit" not in summary["methods"]["dap-u"]
     assert summary["claims"]["dap >= 2x rl-on-source (IQM return)"]["holds"]  # 32k >= 2 x 12k
     assert summary["claims"]["dap-u > dap"]["holds"]
     md = learning.markdown(summary)
-    assert "100 = clean controller 101000.0" in md and "1.0 min / 0.1 min" in md
+    assert "100 = clean controller 101000.0" in md and "| n/a | 1.0 min / 0.1 min |" in md and "| 10 of 15 |" in md
 
 
 @pytest.mark.parametrize("task", ["invertedpendulum-rail-offset-hard", "invertedpendulum-action-delay-1"])
