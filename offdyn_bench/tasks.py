@@ -20,6 +20,7 @@ import gymnasium
 
 from offdyn_bench.effects import (
     ActionBias,
+    ActionGain,
     ActionDelay,
     ActionNoise,
     ContactSolimp,
@@ -232,6 +233,10 @@ def _grid() -> list[TaskPair]:
         _shifted("InvertedPendulum", "rail-offset", "hard",
                  [JointRange(target="slider", scale=0.2), ActionBias(value=1.0)],
                  description="target slider range x0.2 and motor command offset +1.0 (a third of the range)"),
+        # The second learning pair: the motor wired the other way round (an action-channel gap
+        # only, DAP's kind); every source policy pushes the cart the wrong way.
+        _shifted("InvertedPendulum", "reversed-motor", "", [ActionGain(scale=-1.0)],
+                 description="target motor wired in reverse (command gain -1)"),
     ]
     # The wheel-legged balancer (issue 12): the clean model against the "real robot", one pair per task.
     pairs += [TaskPair(robot=WHEEL_LEGGED, shift=task, level="", task=task, source_effects=(),

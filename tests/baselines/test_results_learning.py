@@ -71,7 +71,8 @@ def test_summary_of_an_official_dataset_task_records_its_references_and_wall_tim
     assert "100 = clean controller 101000.0" in md and "| n/a | 1.0 min / 0.1 min |" in md and "| 10 of 15 |" in md
 
 
-@pytest.mark.parametrize("task", ["invertedpendulum-rail-offset-hard", "invertedpendulum-action-delay-1"])
+@pytest.mark.parametrize("task", ["invertedpendulum-rail-offset-hard", "invertedpendulum-action-delay-1",
+                                  "invertedpendulum-reversed-motor"])
 def test_published_invertedpendulum_results_render_as_committed(task):
     """The generalized script keeps the published format: their markdown renders from their JSON as committed."""
     stem = RESULTS / f"learning-{task}"
