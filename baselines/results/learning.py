@@ -203,11 +203,10 @@ def _timed(command: list[str], log: Path, out: Path, stage: str) -> None:
     start = time.monotonic()
     _run(command, log)
     seconds = time.monotonic() - start
-    record = out / "wall_time.json"
-    times = json.loads(record.read_text()) if record.exists() else {}
+    times = _wall_time(out)
     times[f"{stage}_s"] = round(seconds, 1)
     out.mkdir(parents=True, exist_ok=True)
-    record.write_text(json.dumps(times) + "\n")
+    (out / "wall_time.json").write_text(json.dumps(times) + "\n")
 
 
 def _run(command: list[str], log: Path) -> None:
@@ -264,6 +263,12 @@ def references(task: str, runs: Path, mode: str) -> dict:
     return refs
 
 
+def published_format(refs: dict) -> bool:
+    """Whether results with these references keep the published InvertedPendulum format (random
+    and best possible return only; no wall times, episode lengths or reference provenance)."""
+    return "best_reference" not in refs
+
+
 def _wall_time(out: Path) -> dict:
     record = out / "wall_time.json"
     return json.loads(record.read_text()) if record.exists() else {}
@@ -290,7 +295,7 @@ def summarize(task: str, runs: Path, names: list[str], steps: int = STEPS, mode:
                          "target_return_per_seed": per_seed,
                          "iqm_return": float(iqm(np.array([[r] for r in per_seed.values()]))),
                          "iqm_normalized": interval.point, "ci95_normalized": [interval.low, interval.high]}
-        if len(refs) > 2:  # not the published InvertedPendulum format: wall times and episode lengths too
+        if not published_format(refs):  # wall times and episode lengths too
             methods[name]["wall_time_s"] = _wall_time(run_folder(runs, name))
             lengths_file = run_folder(runs, name) / "episode_lengths.json"
             if lengths_file.exists():
@@ -306,7 +311,7 @@ def summarize(task: str, runs: Path, names: list[str], steps: int = STEPS, mode:
                "random_return": j_random, "best_return": j_best}
     if mode != "collect":
         summary["dataset_id"] = official_dataset_id(task)
-    if len(refs) > 2:
+    if not published_format(refs):
         summary["warmup_steps"] = warmup_steps(steps)
         summary |= {k: v for k, v in refs.items() if k not in ("random_return", "best_return")}
     return summary | {"methods": methods, "claims": claims(methods),
@@ -356,7 +361,7 @@ def claims(methods: dict) -> dict[str, dict]:
 def markdown(summary: dict) -> str:
     names = list(summary["methods"])
     seeds = [str(s) for s in summary["seeds"]]
-    if "best_reference" not in summary:  # the published InvertedPendulum format
+    if published_format(summary):
         header = (f"{summary['steps']:,} steps, seeds {', '.join(seeds)} (one process), final policies evaluated on "
                   f"{summary['eval_episodes_per_seed']} fixed target episodes per seed. Random policy "
                   f"{summary['random_return']:.1f}, best possible {summary['best_return']:.0f}. Reproduce: "
@@ -446,7 +451,7 @@ def main(argv: list[str] | None = None) -> None:
         if value != default)
     command = f"python -m baselines.results.learning --task {args.task}{options}"
     refs = references(args.task, runs, mode)
-    if len(refs) > 2:  # not the published InvertedPendulum format: how long the policies stay up, too
+    if not published_format(refs):  # how long the policies stay up, too
         for n in names:
             episode_lengths(args.task, run_folder(runs, n))
     summary = summarize(args.task, runs, names, steps, mode, refs, command)

@@ -302,8 +302,8 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
     sensed_chosen: list[Chosen] = []
     if on_states:
         tick = time.perf_counter()
+        before_residual, = evaluator.residuals([sensed], "heldout")
         for candidate, value, interval in _sensor_effects(check):
-            before_residual, = evaluator.residuals([sensed], "heldout")
             sensed = sensed + (candidate.effect(value),)
             sensed_chosen.append((candidate, value, interval, False))
             after_residual, = evaluator.residuals([sensed], "heldout")
@@ -313,7 +313,7 @@ def diagnose(env_id: str, data: Transitions | str | os.PathLike, settings: Diagn
                               equivalent_alternatives=(), screened=((f"{candidate.label}: read off the stored states", 0.0),),
                               refitted=()))
             history[candidate.label] = [candidate.parameter_value(value)]
-            current = after
+            current, before_residual = after, after_residual
         clock["validation"] += time.perf_counter() - tick
 
     for _ in range(settings.max_effects):

@@ -162,7 +162,8 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
     if candidate.kind == "action_deadzone":
         # Every threshold at or above the largest recorded command zeroes all of them alike: the
         # data tell thresholds apart only below it, so the grids spend their points there.
-        largest = _largest_command(evaluator, hypothesis, candidate)
+        magnitudes = _command_magnitudes(evaluator, hypothesis, candidate)
+        largest = float(magnitudes[-1]) if magnitudes.size else 0.0
         if low < largest < high:
             high = largest
     best, step = candidate.nominal, high - low
@@ -178,9 +179,6 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
         # between neighbouring command magnitudes inside the bracket (at most 32), on every
         # training row, since only rows whose command lies between two trials are re-simulated.
         subset = "train"
-        commands = evaluator.applied_actions(hypothesis)[evaluator.search_starts[subset]]
-        mask = candidate.effect(best).dimension_mask(commands.shape[1], evaluator.source.base_model)  # type: ignore[attr-defined]
-        magnitudes = np.unique(np.abs(commands[:, mask]))
         for _ in range(4):
             inside = magnitudes[(magnitudes >= low) & (magnitudes <= high)]
             if inside.size < 2:
@@ -200,11 +198,12 @@ def _fit_threshold(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candida
     return best, step
 
 
-def _largest_command(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate) -> float:
-    """The largest command magnitude on the actuators ``candidate`` acts on, in the training rows."""
+def _command_magnitudes(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate) -> np.ndarray:
+    """The distinct command magnitudes, sorted, on the actuators ``candidate`` acts on, in the
+    search's training rows."""
     commands = evaluator.applied_actions(hypothesis)[evaluator.search_starts["train"]]
     mask = candidate.effect(candidate.nominal).dimension_mask(commands.shape[1], evaluator.source.base_model)  # type: ignore[attr-defined]
-    return float(np.max(np.abs(commands[:, mask]), initial=0.0))
+    return np.unique(np.abs(commands[:, mask]))
 
 
 def _residuals_one_by_one(evaluator: ResidualEvaluator, hypothesis: Hypothesis, candidate: Candidate,
