@@ -31,11 +31,16 @@ class Algorithm:
     ``online-target``, ``offline-source-offline-target``, ``offline-source-online-target``)."""
     needs_source_dataset: bool = False
     """Trains on a fixed source dataset instead of the source simulator (the offline-source tracks)."""
+    source_only: bool = False
+    """Training reads nothing of the target: the in-training target evaluations draw from streams of
+    their own, so runs with the same seeds and config on tasks that share a source simulator
+    (:attr:`offdyn_bench.tasks.TaskPair.source_key`) train the same policy, bit for bit. ``evaluate``
+    then scores one such run on every task of its source, and a sweep trains it once."""
 
 
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType({a.name: a for a in [
     Algorithm("sac-source", "RL on source: SAC in the source simulator (behaviour policy for datasets)",
-              online_sac.Config, online_sac.build_source, needs_dataset=False, track="reference"),
+              online_sac.Config, online_sac.build_source, needs_dataset=False, track="reference", source_only=True),
     Algorithm("sac-target", "RL on target: SAC in the target (the oracle for normalized scores)",
               online_sac.Config, online_sac.build_target, needs_dataset=False, track="reference"),
     Algorithm("cql", "CQL on the target dataset only (offline)",

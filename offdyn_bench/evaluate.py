@@ -4,7 +4,9 @@
 :data:`~offdyn_bench.protocol.EVAL_EPISODES` target episodes with the protocol's fixed episode
 seeds and deterministic actions, and returns (and writes) raw per-episode returns with the
 versions, the task's version and the protocol version: the ``evaluation.json`` that
-``offdyn-bench leaderboard submit`` and the oracle references read.
+``offdyn-bench leaderboard submit`` and the oracle references read. Each episode's length and
+whether the time limit ended it (``truncated``, against a fall or a reached goal) are recorded
+beside its return; scores use the returns alone.
 
 An agent is either
 
@@ -225,21 +227,51 @@ def _act(agent: Agent, observation: np.ndarray, space: Any, where: str) -> np.nd
     return np.clip(action, space.low, space.high).astype(space.dtype)
 
 
+@dataclasses.dataclass(frozen=True)
+class Episode:
+    """One evaluation episode: its undiscounted return, its length in env steps, and whether the
+    time limit ended it (truncated) rather than the task (terminated: a fall, a goal)."""
+
+    episode_return: float
+    length: int
+    truncated: bool
+
+
+def run_episode(agent: Agent, env: Any, episode_seed: int, where: str) -> Episode:
+    """One full episode of ``agent`` in ``env``, reset with ``episode_seed``."""
+    if callable(getattr(agent, "reset", None)):
+        agent.reset()  # type: ignore[attr-defined]
+    observation, _ = env.reset(seed=int(episode_seed))
+    total, steps, terminated, truncated = 0.0, 0, False, False
+    while not (terminated or truncated):
+        observation, reward, terminated, truncated, _ = env.step(_act(agent, observation, env.action_space, where))
+        total, steps = total + float(reward), steps + 1
+    return Episode(episode_return=total, length=steps, truncated=bool(truncated and not terminated))
+
+
 def episode_returns(agent: Agent, env: Any, episode_seeds: Sequence[int], where: str) -> list[float]:
     """Undiscounted returns of full target episodes, one per seed."""
-    returns = []
-    for episode_seed in episode_seeds:
-        if callable(getattr(agent, "reset", None)):
-            agent.reset()  # type: ignore[attr-defined]
-        observation, _ = env.reset(seed=int(episode_seed))
-        total, done = 0.0, False
-        while not done:
-            observation, reward, terminated, truncated, _ = env.step(_act(agent, observation, env.action_space,
-                                                                          where))
-            total += float(reward)
-            done = terminated or truncated
-        returns.append(total)
-    return returns
+    return [run_episode(agent, env, seed, where).episode_return for seed in episode_seeds]
+
+
+def _check_shared_source(loaded: LoadedAgents, task: str) -> None:
+    """A run trained on another task scores on ``task`` only when its policy is exactly what
+    training on ``task`` would give: a method whose training reads nothing of the target
+    (``sac-source``), and the same source simulator on both tasks."""
+    from baselines.algorithms import ALGORITHMS
+    from offdyn_bench.tasks import get_task
+
+    algorithm = ALGORITHMS.get(loaded.method or "")
+    if algorithm is None or not algorithm.source_only:
+        raise EvaluationError(f"the run was trained on {loaded.task!r}, not {task!r}; only a run of a method that "
+                              "trains in the source alone ("
+                              + ", ".join(name for name, a in ALGORITHMS.items() if a.source_only)
+                              + f") may be scored on another task with the same source, and {loaded.method!r} "
+                              "is not one")
+    if get_task(loaded.task or "").source_key != get_task(task).source_key:
+        raise EvaluationError(f"the run was trained on {loaded.task!r}, whose source is not {task!r}'s source "
+                              f"({get_task(loaded.task or '').source_key} against {get_task(task).source_key}); "
+                              f"train {loaded.method} on {task!r} instead")
 
 
 def _conformance(loaded: LoadedAgents, task: str, track: str | None, budget: str | None,
@@ -306,7 +338,9 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
             raise EvaluationError("--seeds applies to a module:factory agent; a run folder has its own seeds")
         loaded = load_run_agents(agent_path)
         if task is not None and get_task(task).name != loaded.task:
-            raise EvaluationError(f"the run was trained on {loaded.task!r}, not {task!r}")
+            _check_shared_source(loaded, get_task(task).name)
+            loaded.description["trained_task"] = loaded.task
+            loaded.task = get_task(task).name
         task = loaded.task
     else:
         if task is None:
@@ -335,11 +369,13 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
                desc=f"evaluate {pair.name} ({side})")
     try:
         for seed, agent_obj in loaded.agents:
-            returns = []
+            episodes_run = []
             for episode_seed in episode_seeds:
-                returns += episode_returns(agent_obj, env, [episode_seed], f"seed {seed}, episode seed {episode_seed}")
+                episodes_run.append(run_episode(agent_obj, env, episode_seed, f"seed {seed}, episode seed {episode_seed}"))
                 bar.update(1)
-            per_seed.append({"seed": seed, "returns": returns})
+            per_seed.append({"seed": seed, "returns": [e.episode_return for e in episodes_run],
+                             "lengths": [e.length for e in episodes_run],
+                             "truncated": [e.truncated for e in episodes_run]})
     finally:
         bar.close()
         env.close()

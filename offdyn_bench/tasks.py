@@ -12,6 +12,7 @@ are frozen: a change of dynamics is a new version.
 from __future__ import annotations
 
 import dataclasses
+import json
 from collections.abc import Iterable, Mapping
 from types import MappingProxyType
 from typing import Any, Literal
@@ -82,6 +83,12 @@ class TaskPair:
     def env_id(self, side: Side) -> str:
         _check_side(side)
         return f"offdyn/{self.pair_id}-{side}-v{self.version}"
+
+    @property
+    def source_key(self) -> str:
+        """What the source simulator is built from (engine, robot, effects, robot task), as canonical
+        JSON: pairs with equal keys have the same source, whatever their targets."""
+        return json.dumps({"engine": self.engine("source"), **self.env_kwargs("source")}, sort_keys=True)
 
     def effects(self, side: Side) -> tuple[Effect, ...]:
         _check_side(side)

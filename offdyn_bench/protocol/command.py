@@ -75,11 +75,13 @@ def evaluate_command(
         record = evaluate(agent, task, track=track, budget=budget, seeds=_parse_seeds(seeds), episodes=episodes,
                           out=out, method=method, progress=progress, side=side)
         scores = method_scores(record["method"] or "agent", [record], record["budget"])
+    truncated = {entry["seed"]: entry["truncated"] for entry in record["seeds"]}
     for i, seed in enumerate(scores.seeds):
         line = f"seed {seed}: mean target return {scores.raw[i, 0]:.1f}"
         if scores.normalized is not None:
             line += f", normalized {scores.normalized[i, 0]:.1f}"
-        typer.echo(line)
+        ran_out = truncated[seed]
+        typer.echo(line + f" ({sum(ran_out)}/{len(ran_out)} episodes ran to the time limit)")
     if scores.missing_references:
         typer.echo(f"no normalized score: {record['task']} has no random and oracle reference"
                    + (f" at budget {record['budget']!r}" if record["budget"] else " (no protocol budget)"))

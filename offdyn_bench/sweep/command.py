@@ -45,7 +45,8 @@ def sweep_command(
             runs = expand(spec)
             for run in runs:
                 status = "done" if finished_evaluation(run) is not None else "to run"
-                typer.echo(f"{run.run_id} ({status})")
+                shared = f", scores the policy of {run.shared_training}" if run.shared_training is not None else ""
+                typer.echo(f"{run.run_id} ({status}{shared})")
                 for args in (run.train_args, run.evaluate_args):
                     typer.echo("  " + shlex.join(["offdyn-bench", *args]))
             typer.echo(f"{len(runs)} runs; python: {command_line([])[0]}")

@@ -239,7 +239,14 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     while pending or in_flight:
                         capacity = engine.capacity
                         while pending and len(in_flight) < capacity:
-                            run = pending.pop(0)
+                            # Never two runs on one training folder at once: a run that scores
+                            # another's policy waits for its training, then only evaluates.
+                            busy = {other.training_folder for other in in_flight.values()}
+                            ready = next((r for r in pending if r.training_folder not in busy), None)
+                            if ready is None:
+                                break
+                            run = ready
+                            pending.remove(run)
                             record = records[run.run_id]
                             record.status = "running"
                             record.attempts += 1

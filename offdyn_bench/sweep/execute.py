@@ -71,16 +71,19 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
                       + (f" ({error})" if error else "") + "\n")
             return result
 
-        _wait_for_other_trainer(run, log)
-        if (run.folder / RESULT_FILE).exists():
+        trained_in = run.training_folder
+        if run.shared_training is not None:
+            log.write(f"=== {run.run_id} scores the policy trained in {trained_in} (same method, seeds and source)\n")
+        _wait_for_other_trainer(trained_in, log)
+        if (trained_in / RESULT_FILE).exists():
             mismatch = _finished_run_mismatch(run)
             if mismatch is not None:
                 return outcome(False, "train", error=mismatch)
-            log.write(f"=== {run.folder} holds a finished training run (result.json): evaluating it\n")
+            log.write(f"=== {trained_in} holds a finished training run (result.json): evaluating it\n")
         else:
-            checkpoints = sorted((run.folder / "checkpoints").glob("step_*")) if run.folder.is_dir() else []
+            checkpoints = sorted((trained_in / "checkpoints").glob("step_*")) if trained_in.is_dir() else []
             if checkpoints:
-                log.write(f"=== resuming: {run.folder} holds checkpoints up to {checkpoints[-1].name}\n")
+                log.write(f"=== resuming: {trained_in} holds checkpoints up to {checkpoints[-1].name}\n")
             code, used = _run_logged(command_line(run.train_args), log)
             cpu += used
             if code != 0:
@@ -97,12 +100,12 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
         return outcome(True, "check", mean_return=sum(returns) / len(returns))
 
 
-def _wait_for_other_trainer(run: Run, log: Any) -> None:
-    """Wait while another process trains in ``run.folder`` (it holds the folder's lock): a train
+def _wait_for_other_trainer(folder: Path, log: Any) -> None:
+    """Wait while another process trains in ``folder`` (it holds the folder's lock): a train
     left running by a killed worker or a killed sweep driver. It finishes the run (or dies), and
     this attempt then evaluates (or resumes) it, instead of failing on the lock every retry."""
     try:
-        fd = os.open(run.folder / LOCK_FILE, os.O_RDWR)
+        fd = os.open(folder / LOCK_FILE, os.O_RDWR)
     except OSError:
         return  # no lock file: nobody has trained here yet
     try:
@@ -111,7 +114,7 @@ def _wait_for_other_trainer(run: Run, log: Any) -> None:
         except OSError as error:
             if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 return
-            log.write(f"=== waiting: another process is training in {run.folder} (its {LOCK_FILE} is locked)\n")
+            log.write(f"=== waiting: another process is training in {folder} (its {LOCK_FILE} is locked)\n")
             log.flush()
             fcntl.flock(fd, fcntl.LOCK_EX)
             log.write("=== the other process has let go of the folder\n")
@@ -149,8 +152,8 @@ def _last_error_line(log: Path) -> str:
 
 
 def _finished_run_mismatch(run: Run) -> str | None:
-    """Why the finished run in ``run.folder`` is not this run, or None."""
+    """Why the finished run in ``run.training_folder`` is not this run, or None."""
     conflict = settings_conflict(run)
     if conflict is None:
         return None
-    return f"{run.folder} holds a finished run with other settings ({conflict}); move it away or change out"
+    return f"{run.training_folder} holds a finished run with other settings ({conflict}); move it away or change out"

@@ -44,6 +44,16 @@ class Run:
     settings: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     """What ``train`` records in ``config.json`` that decides the result (algo, task, steps,
     seeds, dataset, the full method config): a folder holding other settings is another run."""
+    shared_training: Path | None = None
+    """The run folder this run's policy is trained in when that is another run's (a source-only
+    method on a task whose source an earlier task of the sweep has: ``train_args`` and
+    ``settings`` are then that run's, and ``evaluate`` scores its policy on this run's task into
+    ``folder``); None: the run trains in ``folder``."""
+
+    @property
+    def training_folder(self) -> Path:
+        """Where ``train`` writes this run's policy: its own folder, or the shared one."""
+        return self.shared_training if self.shared_training is not None else self.folder
 
     @property
     def run_id(self) -> str:
@@ -98,6 +108,7 @@ def expand(spec: SweepSpec) -> list[Run]:
             raise SpecError(f"{where}: budget: {error}") from None
     needs_dataset: dict[str, bool] = {}
     needs_source_dataset: dict[str, bool] = {}
+    source_only: dict[str, bool] = {}
     configs: dict[str, dict[str, Any]] = {}
     target_step_every: dict[str, int | None] = {}
     for method in spec.methods:
@@ -112,6 +123,7 @@ def expand(spec: SweepSpec) -> list[Run]:
         # The trainer's rule (baselines/train.py): DARC with target_data=online takes no dataset.
         needs_dataset[method] = algorithm.needs_dataset and getattr(config, "target_data", "offline") != "online"
         needs_source_dataset[method] = algorithm.needs_source_dataset
+        source_only[method] = algorithm.source_only
         configs[method] = config_to_dict(config)
         # The trainer's rule too: an online method steps the target once per target_step_every steps.
         target_step_every[method] = (int(config.target_step_every)
@@ -150,6 +162,9 @@ def expand(spec: SweepSpec) -> list[Run]:
     root = spec.out
     runs = []
     for method in spec.methods:
+        # A source-only method (sac-source) trains once per source and seed group: later tasks
+        # with the same source score the first one's policy (the same bytes training would give).
+        trained: dict[tuple[str, tuple[int, ...]], Run] = {}
         for task in tasks:
             for seeds in seed_groups(spec.seeds, spec.seeds_per_run):
                 folder = root / RUNS_DIR / method / task / seed_label(seeds)
@@ -157,16 +172,24 @@ def expand(spec: SweepSpec) -> list[Run]:
                     else (spec.dataset if needs_dataset[method] else None)
                 source = official_source_dataset(task, spec.track) if needs_source_dataset[method] else None
                 log = root / LOGS_DIR / method / task / f"{seed_label(seeds)}.log"
-                runs.append(Run(method=method, task=task, seeds=seeds, folder=folder, log=log,
-                                train_args=tuple(_train_args(spec, method, task, seeds, folder,
-                                                             needs_dataset[method])),
-                                evaluate_args=tuple(_evaluate_args(spec, folder)),
-                                steps=steps, evaluation_episodes=spec.evaluation_episodes,
-                                official_dataset=dataset if spec.dataset is None else None,
-                                official_source_dataset=source,
-                                settings={"algo": method, "task": task, "steps": steps, "seeds": list(seeds),
-                                          "dataset": dataset, "config": configs[method]}
-                                | ({"source_dataset": source} if source is not None else {})))
+                run = Run(method=method, task=task, seeds=seeds, folder=folder, log=log,
+                          train_args=tuple(_train_args(spec, method, task, seeds, folder, needs_dataset[method])),
+                          evaluate_args=tuple(_evaluate_args(spec, folder)),
+                          steps=steps, evaluation_episodes=spec.evaluation_episodes,
+                          official_dataset=dataset if spec.dataset is None else None,
+                          official_source_dataset=source,
+                          settings={"algo": method, "task": task, "steps": steps, "seeds": list(seeds),
+                                    "dataset": dataset, "config": configs[method]}
+                          | ({"source_dataset": source} if source is not None else {}))
+                if source_only[method]:
+                    donor = trained.setdefault((get_task(task).source_key, seeds), run)
+                    if donor is not run:
+                        run = dataclasses.replace(
+                            run, train_args=donor.train_args, settings=donor.settings,
+                            shared_training=donor.folder,
+                            evaluate_args=tuple(_evaluate_args(spec, donor.folder, task=task,
+                                                               out=folder / EVALUATION_FILE)))
+                runs.append(run)
     return runs
 
 
@@ -188,11 +211,12 @@ def _train_args(spec: SweepSpec, method: str, task: str, seeds: tuple[int, ...],
     return args + ["--out", str(folder)]
 
 
-def _evaluate_args(spec: SweepSpec, folder: Path) -> list[str]:
+def _evaluate_args(spec: SweepSpec, folder: Path, *, task: str | None = None, out: Path | None = None) -> list[str]:
     # --track also for the reference methods (sac-source, sac-target): their records then name the
     # track they are submitted beside, like every other run of the sweep.
-    return ["evaluate", "--agent", str(folder), "--track", spec.track, "--episodes", str(spec.evaluation_episodes),
+    args = ["evaluate", "--agent", str(folder), "--track", spec.track, "--episodes", str(spec.evaluation_episodes),
             "--no-progress"]
+    return args + (["--task", task] if task is not None else []) + (["--out", str(out)] if out is not None else [])
 
 
 def official_datasets(runs: Sequence[Run]) -> list[str]:
@@ -224,9 +248,9 @@ def finished_evaluation(run: Run) -> dict[str, Any] | None:
 
 
 def settings_conflict(run: Run) -> str | None:
-    """Why ``run.folder`` holds another run than ``run`` (its ``config.json`` records other
-    settings: ``differs in: steps, config.sac.batch_size``), or None (no run there, or this one)."""
-    path = run.folder / CONFIG_FILE
+    """Why ``run.training_folder`` holds another run than ``run`` (its ``config.json`` records
+    other settings: ``differs in: steps, config.sac.batch_size``), or None (no run there, or this one)."""
+    path = run.training_folder / CONFIG_FILE
     if not path.exists():
         return None
     try:

@@ -101,6 +101,32 @@ def test_run_agents_match_the_trainers_own_deployed_policy(finished_run):
         assert episode_returns(agent, env, [1_000_000], "t") == pytest.approx(result["returns"][str(seed)], rel=1e-5)
 
 
+def test_episode_lengths_and_time_limits_are_recorded_beside_the_returns(agent_module, tmp_path):
+    """InvertedPendulum pays 1 per step while the pole is up and 0 for the step it falls, so a fallen
+    episode is one step longer than its return. Zero torque lets the pole fall (terminated); a
+    5-step time limit stops it first (truncated)."""
+    import gymnasium
+
+    from offdyn_bench.evaluate import run_episode
+
+    record = evaluate(f"{agent_module}:make", PENDULUM, seeds=[0], episodes=3, progress=False, method="zero")
+    entry = record["seeds"][0]
+    assert entry["lengths"] == [round(r) + 1 for r in entry["returns"]] and all(1 < n < 1000 for n in entry["lengths"])
+    assert entry["truncated"] == [False, False, False]
+    zero = sys.modules[agent_module].Zero()
+    short = gymnasium.make("offdyn/InvertedPendulum-gravity-3.0-target-v0", max_episode_steps=5)
+    episode = run_episode(zero, short, EPISODE_SEEDS[0], "t")
+    assert (episode.length, episode.truncated, episode.episode_return) == (5, True, 5.0)
+    long = gymnasium.make("offdyn/InvertedPendulum-gravity-3.0-target-v0")
+    episode = run_episode(zero, long, EPISODE_SEEDS[0], "t")
+    assert (episode.length, episode.truncated) == (entry["lengths"][0], False)
+    # The command line says how many episodes ran to the time limit.
+    result = CliRunner().invoke(app, ["evaluate", "--agent", f"{agent_module}:make", "--task", PENDULUM,
+                                      "--episodes", "2", "--no-progress", "--out", str(tmp_path / "e.json")])
+    assert result.exit_code == 0, result.output
+    assert "(0/2 episodes ran to the time limit)" in result.output
+
+
 def test_a_user_agent_from_a_factory(agent_module):
     record = evaluate(f"{agent_module}:make", PENDULUM, seeds=[0, 1], episodes=3, progress=False, method="zero")
     assert [s["seed"] for s in record["seeds"]] == [0, 1]
@@ -133,8 +159,9 @@ def test_bad_run_folders_are_clear_errors(finished_run, tmp_path):
           checkpoint_every=20, stop_after=20)
     with pytest.raises(EvaluationError, match="has not finished"):
         evaluate(unfinished, progress=False)
-    with pytest.raises(EvaluationError, match="trained on 'invertedpendulum-gravity-3.0', not"):
-        evaluate(finished_run, "invertedpendulum-kinematic-slider-hard", progress=False)
+    # Another task with the same source would score the same policy (tests/sweep/test_shared_source_training.py).
+    with pytest.raises(EvaluationError, match="trained on 'invertedpendulum-gravity-3.0', whose source is not"):
+        evaluate(finished_run, "hopper-gravity-0.5", progress=False)
     with pytest.raises(ProtocolError, match="the run trained for 60 steps; budget 'lite' is 100000 steps"):
         evaluate(finished_run, budget="lite", progress=False)
     with pytest.raises(OffdynError, match="unknown track 'nowhere'; valid names: .*'offline-target', 'online-target'"):

@@ -57,3 +57,17 @@ def finished_sweep(tmp_path_factory):
     root = tmp_path_factory.mktemp("sweep")
     report = run_sweep(parse_spec(_tiny_spec(root / "out"), source="tiny"), workers=2, echo=None)
     return report
+
+
+SHARED_SOURCE_TASKS = ["invertedpendulum-gravity-3.0", "invertedpendulum-kinematic-slider-hard"]
+
+
+@pytest.fixture(scope="module")
+def shared_source_sweep(tmp_path_factory):
+    """A tiny sac-source sweep on two tasks with one source (1 seed, 2 workers): one training."""
+    from offdyn_bench.sweep import parse_spec
+    from offdyn_bench.sweep.driver import run_sweep
+
+    root = tmp_path_factory.mktemp("shared")
+    spec = parse_spec(_tiny_spec(root / "out", tasks=SHARED_SOURCE_TASKS, seeds=1), source="shared")
+    return run_sweep(spec, workers=2, echo=None)

@@ -1,0 +1,130 @@
+"""RL on source trains once per source: tasks that share a source simulator score the same policy.
+
+The premise is checked, not assumed: a sac-source run trained on one task is bit for bit the run
+trained on another task with the same source, and scoring it there gives the very returns a run
+of its own would.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.evaluate import evaluate
+from offdyn_bench.sweep import parse_spec
+from offdyn_bench.sweep.driver import STATE_FILE
+from offdyn_bench.sweep.runs import expand
+
+# Both InvertedPendulum pairs have the nominal pendulum as their source.
+FIRST, SECOND = "invertedpendulum-gravity-3.0", "invertedpendulum-kinematic-slider-hard"
+
+
+def test_source_keys_group_tasks_by_the_simulator_they_train_in():
+    from offdyn_bench.tasks import get_task
+
+    assert get_task(FIRST).source_key == get_task(SECOND).source_key
+    assert get_task("hopper-gravity-0.5").source_key == get_task("hopper-friction-0.5").source_key
+    assert get_task("hopper-gravity-0.5").source_key != get_task("walker2d-gravity-2.0").source_key
+    # An H2O pair's source carries its own effect: it is not the nominal robot's source.
+    assert get_task("halfcheetah-h2o-gravity-2.0").source_key != get_task("halfcheetah-gravity-0.5").source_key
+    assert get_task("wheellegged-standstill").source_key != get_task("wheellegged-movestraight").source_key
+
+
+def test_the_core_suite_trains_rl_on_source_once_per_robot_and_seed(tmp_path, tiny_spec):
+    from offdyn_bench.protocol import CORE_SUITE
+
+    spec = parse_spec(tiny_spec(tmp_path / "out", methods=["sac-source", "sac-target"], tasks="core", seeds=5,
+                                steps=None, budget="lite", overrides={}))
+    runs = expand(spec)
+    source_runs = [run for run in runs if run.method == "sac-source"]
+    target_runs = [run for run in runs if run.method == "sac-target"]
+    assert len(source_runs) == len(target_runs) == 5 * len(CORE_SUITE)
+    robots = {task.split("-")[0] for task in CORE_SUITE}
+    trained = {run.training_folder for run in source_runs}
+    assert len(trained) == 5 * len(robots)  # Hopper, Walker2d, HalfCheetah, Ant
+    assert len({run.training_folder for run in target_runs}) == 5 * len(CORE_SUITE)  # every target its own
+    for run in source_runs:
+        if run.shared_training is None:
+            assert run.training_folder == run.folder
+            continue
+        donor = next(other for other in source_runs if other.folder == run.shared_training)
+        assert donor.shared_training is None and donor.seeds == run.seeds
+        assert donor.task.split("-")[0] == run.task.split("-")[0]
+        assert run.train_args == donor.train_args and run.settings == donor.settings
+        args = list(run.evaluate_args)
+        assert args[args.index("--agent") + 1] == str(donor.folder)
+        assert args[args.index("--task") + 1] == run.task
+        assert args[args.index("--out") + 1] == str(run.folder / "evaluation.json")
+
+
+def test_the_second_task_scores_the_first_tasks_policy_without_training(shared_source_sweep):
+    first, second = shared_source_sweep.runs
+    assert (first.task, second.task) == (FIRST, SECOND) and second.shared_training == first.folder
+    assert not shared_source_sweep.failed
+    assert (first.folder / "result.json").exists() and (first.folder / "checkpoints").is_dir()
+    # Nothing was trained for the second task: its folder holds its evaluation only.
+    assert sorted(p.name for p in second.folder.iterdir()) == ["evaluation.json"]
+    log = second.log.read_text()
+    assert f"scores the policy trained in {first.folder}" in log and " train " not in log
+    state = json.loads((shared_source_sweep.spec.out / STATE_FILE).read_text())
+    assert all(state["runs"][run.run_id]["status"] == "done" for run in shared_source_sweep.runs)
+    record = json.loads((second.folder / "evaluation.json").read_text())
+    assert record["task"] == SECOND and record["method"] == "sac-source"
+    assert record["agent"]["trained_task"] == FIRST and record["agent"]["path"] == str(first.folder)
+    # Scoring the shared policy is no departure from the protocol: only the tiny sweep's own are noted.
+    assert len(record["notes"]) == 2 and all("steps" in note or "episodes" in note for note in record["notes"])
+
+
+def test_the_shared_score_is_the_score_of_a_run_trained_on_the_task_itself(shared_source_sweep, tmp_path):
+    """Train sac-source on the second task directly, with the same settings: the policy has the
+    same bytes and its returns in the second task's target are the shared evaluation's."""
+    import subprocess
+
+    from offdyn_bench.sweep.execute import command_line
+
+    first, second = shared_source_sweep.runs
+    direct = tmp_path / "direct"
+    args = list(first.train_args)
+    args[args.index("--task") + 1] = SECOND
+    args[args.index("--out") + 1] = str(direct)
+    subprocess.run(command_line(args), check=True, capture_output=True)
+    own = evaluate(direct, episodes=2, progress=False, out=tmp_path / "own.json")
+    shared = json.loads((second.folder / "evaluation.json").read_text())
+    assert own["task"] == shared["task"] == SECOND
+    assert own["agent"]["policy_sha256"] == shared["agent"]["policy_sha256"]
+    assert own["seeds"] == shared["seeds"]
+    # The premise itself: the two trainings wrote the same final state.
+    for name in ("state.safetensors", "trainer.json"):
+        final = f"checkpoints/step_{300:09d}/{name}"
+        assert (direct / final).read_bytes() == (first.folder / final).read_bytes(), name
+
+
+def test_a_run_is_scored_on_another_task_only_where_its_policy_would_be_the_same(shared_source_sweep, tmp_path):
+    first = shared_source_sweep.runs[0]
+    with pytest.raises(OffdynError, match=r"trained on 'invertedpendulum-gravity-3.0', whose source is not "
+                                          r"'hopper-gravity-0.5''s source"):
+        evaluate(first.folder, "hopper-gravity-0.5", episodes=1, progress=False, out=tmp_path / "x.json")
+    # A method that trains on target data or in the target is never scored on another task.
+    config = json.loads((first.folder / "config.json").read_text())
+    target_run = tmp_path / "as-target"
+    shutil.copytree(first.folder, target_run)
+    (target_run / "config.json").write_text(json.dumps(config | {"algo": "sac-target"}))
+    with pytest.raises(OffdynError, match=r"only a run of a method that trains in the source alone \(sac-source\)"):
+        evaluate(target_run, SECOND, episodes=1, progress=False, out=tmp_path / "y.json")
+    assert not (tmp_path / "x.json").exists() and not (tmp_path / "y.json").exists()
+
+
+def test_dry_run_names_the_policy_a_shared_run_scores(tmp_path, tiny_spec, write_spec):
+    from typer.testing import CliRunner
+
+    from offdyn_bench.cli import app
+
+    spec = write_spec(tmp_path / "spec.json", tiny_spec(tmp_path / "out", tasks=[FIRST, SECOND], seeds=1))
+    result = CliRunner().invoke(app, ["sweep", str(spec), "--dry-run"])
+    assert result.exit_code == 0, result.output
+    first = tmp_path / "out" / "runs" / "sac-source" / FIRST / "seed-0"
+    assert f"sac-source/{SECOND}/seed-0 (to run, scores the policy of {first})" in result.output
+    assert not (tmp_path / "out").exists()
