@@ -371,7 +371,8 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
         for seed, agent_obj in loaded.agents:
             episodes_run = []
             for episode_seed in episode_seeds:
-                episodes_run.append(run_episode(agent_obj, env, episode_seed, f"seed {seed}, episode seed {episode_seed}"))
+                where = f"seed {seed}, episode seed {episode_seed}"
+                episodes_run.append(run_episode(agent_obj, env, episode_seed, where))
                 bar.update(1)
             per_seed.append({"seed": seed, "returns": [e.episode_return for e in episodes_run],
                              "lengths": [e.length for e in episodes_run],
