@@ -22,7 +22,14 @@ import gymnasium
 import numpy as np
 
 from offdyn_bench.datasets.archive import compare_files, tree_sha256, write_archive
-from offdyn_bench.datasets.collect import collect_transitions, episode_returns, gaussian_action_noise
+from offdyn_bench.datasets.collect import (
+    LEVEL_INFO,
+    Level,
+    collect_levels,
+    collect_transitions,
+    episode_returns,
+    gaussian_action_noise,
+)
 from offdyn_bench.datasets.install import InstallError, dataset_dir, install_tree, is_installed, resolve_root, staging
 from offdyn_bench.datasets.manifest import (
     ArchiveRecord,
@@ -43,7 +50,16 @@ from offdyn_bench.datasets.policies import (
     policy_sha256,
     read_sidecar,
 )
-from offdyn_bench.datasets.recipes import REPO_ROOT, SKILL_LEVELS, Recipe, RecipeError, dynamics_label
+from offdyn_bench.datasets.recipes import (
+    H2O_QUALITIES,
+    POLICY_KINDS,
+    REPO_ROOT,
+    SKILL_LEVELS,
+    Recipe,
+    RecipeError,
+    dynamics_label,
+)
+from offdyn_bench.datasets.training_data import collect_training_replay, medium_expert_levels
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TaskPair
 from offdyn_bench.versions import versions
@@ -138,6 +154,12 @@ def _behaviour(recipe: Recipe, pair: TaskPair, env: gymnasium.Env) -> tuple[Poli
 
 
 def _missing_behaviour(recipe: Recipe, pair: TaskPair) -> MissingPolicyError:
+    if recipe.quality in H2O_QUALITIES:
+        return MissingPolicyError(
+            f"{recipe.dataset_id}: behaviour policy {recipe.behaviour.policy} is missing. It is the medium checkpoint "
+            f"of the SAC oracle run in the target ({dynamics_label(pair, 'target')}). Make it and the oracle with: "
+            f"python scripts/make_h2o_behaviours.py --robot {pair.robot.lower()}, then run: "
+            f"offdyn-bench datasets build {recipe.dataset_id} --update-manifest")
     return MissingPolicyError(
         f"{recipe.dataset_id}: behaviour policy {recipe.behaviour.policy} is missing. It is the SAC policy trained "
         f"in the source dynamics ({dynamics_label(pair, 'source')}), DAP's 'RL on source'. Train it with "
@@ -151,7 +173,7 @@ def check_buildable(recipe: Recipe) -> None:
     step), so a caller can fail before it shows any progress."""
     pair = recipe.check_task()
     behaviour = recipe.behaviour
-    if behaviour.kind in ("policy", "skill-mixture"):
+    if behaviour.kind in POLICY_KINDS:
         path = repo_path(str(behaviour.policy))
         if not path.is_file():
             raise _missing_behaviour(recipe, pair)
@@ -192,41 +214,25 @@ def _oracle(recipe: Recipe, fresh: bool) -> tuple[pathlib.Path | None, Recipe]:
     return None, recipe
 
 
-SKILL_LEVEL_INFO = "behaviour_level"
+SKILL_LEVEL_INFO = LEVEL_INFO
 """The infos column of a ``skill-mixture`` dataset that says which of SKILL_LEVELS acted (its index)."""
 
 
-def _collect_skill_mixture(recipe: Recipe, env: gymnasium.Env, policy: Policy,
-                           on_progress: Callable[[int], None] | None) -> tuple[list, list[dict[str, Any]]]:
-    """Equal shares of the transitions from each of :data:`SKILL_LEVELS`, one after the other
-    (episode seeds run on across levels), each transition labelled with its level in the infos;
-    and per level what it was and how it scored (mean return of its complete episodes)."""
+def _skill_levels(recipe: Recipe, env: gymnasium.Env, policy: Policy) -> list[Level]:
+    """:data:`SKILL_LEVELS`: the behaviour policy at each noise level, then uniform-random actions."""
     space = env.action_space
     assert isinstance(space, gymnasium.spaces.Box)
-    episodes: list = []
-    levels: list[dict[str, Any]] = []
-    share, extra = divmod(recipe.num_transitions, len(SKILL_LEVELS))
+    levels = []
     for index, (name, noise_std) in enumerate(SKILL_LEVELS):
         if noise_std is None:
             rng_seed = [recipe.seed, 1]
-            actor: Policy = UniformRandomPolicy(space.low, space.high, seed=derived_seed(rng_seed))
-            noise, described = None, {"actions": "uniform random", "rng_seed": rng_seed}
+            levels.append(Level(name, UniformRandomPolicy(space.low, space.high, seed=derived_seed(rng_seed)),
+                                {"actions": "uniform random", "rng_seed": rng_seed}))
         else:
             noise_seed = [recipe.seed, 2, index]
-            actor = policy
-            noise = gaussian_action_noise(noise_std, derived_seed(noise_seed))
-            described = {"actions": "behaviour policy", "action_noise_std": noise_std, "action_noise_seed": noise_seed}
-        count = share + (1 if index < extra else 0)
-        collected = list(collect_transitions(env, actor, num_transitions=count, seed=recipe.seed,
-                                             action_noise=noise, on_step=on_progress, first_episode=len(episodes)))
-        episodes += [dataclasses.replace(e, infos={**e.infos, SKILL_LEVEL_INFO: [float(index)] * (len(e.rewards) + 1)})
-                     for e in collected]
-        # Every episode but the last ended on its own; the last one did only if it terminated.
-        complete = [float(np.sum(e.rewards)) for e in collected[:-1]]
-        complete += [float(np.sum(collected[-1].rewards))] if collected[-1].terminations[-1] else []
-        levels.append({"level": name, "index": index, **described, "transitions": count, "episodes": len(collected),
-                       "mean_return_of_complete_episodes": float(np.mean(complete)) if complete else None})
-    return episodes, levels
+            levels.append(Level(name, policy, {"actions": "behaviour policy", "action_noise_std": noise_std,
+                                               "action_noise_seed": noise_seed}, noise_std, noise_seed))
+    return levels
 
 
 def reference_scores(recipe: Recipe, pair: TaskPair, oracle_path: pathlib.Path | None) -> dict[str, Any]:
@@ -318,16 +324,28 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
     pair = recipe.check_task()
     env = pair.make(recipe.collect_in)
     policy, recipe, behaviour = _behaviour(recipe, pair, env)
-    if recipe.behaviour.kind == "skill-mixture":
+    fresh = recorded is None or recorded.files is None
+    if recipe.behaviour.kind == "medium-expert":
+        # The oracle acts in this data, so it must be there before anything is collected.
+        oracle_path, recipe = _oracle(recipe, fresh=True)
+        if oracle_path is None:
+            raise MissingPolicyError(f"{recipe.dataset_id}: the expert half is the oracle {recipe.oracle_policy}, "
+                                     "which is missing; make it with scripts/make_h2o_behaviours.py")
+    if recipe.behaviour.kind in ("skill-mixture", "medium-expert"):
         for per_level in ("action_noise_std", "action_noise_seed"):  # each level has its own: see "levels"
             behaviour.pop(per_level)
-        episodes, behaviour["levels"] = _collect_skill_mixture(recipe, env, policy, on_progress)
+        levels = (_skill_levels(recipe, env, policy) if recipe.behaviour.kind == "skill-mixture"
+                  else medium_expert_levels(recipe, policy, load_policy(oracle_path)))
+        episodes, behaviour["levels"] = collect_levels(env, levels, num_transitions=recipe.num_transitions,
+                                                       seed=recipe.seed, on_step=on_progress)
+    elif recipe.behaviour.kind == "training-replay":
+        episodes, behaviour["replay"] = collect_training_replay(recipe, pair, env, on_progress)
     else:
         noise = gaussian_action_noise(recipe.behaviour.action_noise_std, derived_seed([recipe.seed, 2]))
         episodes = list(collect_transitions(env, policy, num_transitions=recipe.num_transitions, seed=recipe.seed,
                                             action_noise=noise, on_step=on_progress))
     env.close()
-    oracle_path, recipe = _oracle(recipe, fresh=recorded is None or recorded.files is None)
+    oracle_path, recipe = _oracle(recipe, fresh=fresh)
     scores = reference_scores(recipe, pair, oracle_path)
     provenance = {
         "recipe": recipe.to_dict(),

@@ -15,7 +15,7 @@ from offdyn_bench.datasets.install import datasets_root, is_installed, verify_in
 from offdyn_bench.datasets.staging import clean_stale_staging
 from offdyn_bench.datasets.transfer import TransferLimits
 from offdyn_bench.datasets.manifest import MANIFEST_PATH, Manifest, read_manifest
-from offdyn_bench.datasets.recipes import dataset_id, qualities_of
+from offdyn_bench.datasets.recipes import POLICY_KINDS, dataset_id, qualities_of
 from offdyn_bench.errors import OffdynError, exit_on_error
 from offdyn_bench.tasks import TASKS
 
@@ -27,9 +27,10 @@ ManifestOption = Annotated[Optional[pathlib.Path], typer.Option(
 
 
 def _behaviour_status(entry_recipe) -> str:  # noqa: ANN001 - a Recipe
-    if entry_recipe.behaviour.kind != "policy":
-        return entry_recipe.behaviour.kind
-    return "policy" if repo_path(str(entry_recipe.behaviour.policy)).is_file() else "policy MISSING"
+    kind = entry_recipe.behaviour.kind
+    if kind not in POLICY_KINDS:
+        return kind
+    return kind if repo_path(str(entry_recipe.behaviour.policy)).is_file() else f"{kind} MISSING"
 
 
 @datasets_app.command("list")

@@ -22,7 +22,7 @@ import gymnasium
 import numpy as np
 from minari.data_collector.episode_buffer import EpisodeBuffer
 
-from offdyn_bench.datasets.policies import Policy
+from offdyn_bench.datasets.policies import Policy, derived_seed
 from offdyn_bench.errors import OffdynError
 
 # prev_state is state[t] of the row before: stored once, checked equal while collecting.
@@ -73,8 +73,12 @@ class _InfoColumns:
 
 def run_episode(env: gymnasium.Env, policy: Policy, *, seed: int, max_steps: int | None = None,
                 action_noise: Callable[[np.ndarray], np.ndarray] | None = None,
-                episode_id: int | None = None) -> EpisodeBuffer:
-    """One episode from ``reset(seed=seed)`` until it ends or ``max_steps`` transitions are in."""
+                episode_id: int | None = None, step_in_space_dtype: bool = True) -> EpisodeBuffer:
+    """One episode from ``reset(seed=seed)`` until it ends or ``max_steps`` transitions are in.
+
+    Actions are stored in the action space's dtype. ``step_in_space_dtype=False`` steps the env
+    with the float64 action instead (a replay of a trainer that stepped so); the caller checks
+    that storing it in the space's dtype loses nothing."""
     space = env.action_space
     assert isinstance(space, gymnasium.spaces.Box)
     obs, info = env.reset(seed=seed)
@@ -91,8 +95,9 @@ def run_episode(env: gymnasium.Env, policy: Policy, *, seed: int, max_steps: int
         if action_noise is not None:
             action = action_noise(action)
         # Store exactly what the env received: clipped to the box, in the space's dtype.
-        action = np.clip(action, space.low, space.high).astype(space.dtype)
-        obs, reward, terminated, truncated, info = env.step(action)
+        clipped = np.clip(action, space.low, space.high)
+        action = clipped.astype(space.dtype)
+        obs, reward, terminated, truncated, info = env.step(action if step_in_space_dtype else clipped)
         if previous_state is not None and not np.array_equal(info.get("prev_state"), previous_state):
             raise OffdynError("the env's prev_state differs from the state it reported after the last step; "
                               "a dataset could not restart the simulator exactly")
@@ -149,6 +154,49 @@ def collect_transitions(env: gymnasium.Env, policy: Policy, *, num_transitions: 
         if on_step is not None:
             on_step(len(buffer.rewards))
         yield buffer
+
+
+LEVEL_INFO = "behaviour_level"
+"""The infos column of a dataset collected in levels (``skill-mixture``, ``medium-expert``) that
+says which level acted: its index in the recipe's order."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Level:
+    """One level of a dataset collected in levels: who acts, and with how much action noise."""
+
+    name: str
+    actor: Policy
+    description: dict
+    """What the level is, for the dataset's metadata (actions, noise, its seeds)."""
+    noise_std: float | None = None
+    noise_seed: list[int] | None = None
+
+
+def collect_levels(env: gymnasium.Env, levels: list[Level], *, num_transitions: int, seed: int,
+                   on_step: Callable[[int], None] | None = None) -> tuple[list[EpisodeBuffer], list[dict]]:
+    """Equal shares of ``num_transitions`` from each level, one after the other (episode seeds run
+    on across levels: episode ``i`` resets with ``seed + i``), every transition labelled with its
+    level's index in the infos (:data:`LEVEL_INFO`); and per level what it was and how it scored
+    (the mean return of its complete episodes)."""
+    episodes: list[EpisodeBuffer] = []
+    described: list[dict] = []
+    share, extra = divmod(num_transitions, len(levels))
+    for index, level in enumerate(levels):
+        noise = (None if level.noise_std is None
+                 else gaussian_action_noise(level.noise_std, derived_seed(level.noise_seed or [])))
+        count = share + (1 if index < extra else 0)
+        collected = list(collect_transitions(env, level.actor, num_transitions=count, seed=seed,
+                                             action_noise=noise, on_step=on_step, first_episode=len(episodes)))
+        episodes += [dataclasses.replace(e, infos={**e.infos, LEVEL_INFO: [float(index)] * (len(e.rewards) + 1)})
+                     for e in collected]
+        # Every episode but the last ended on its own; the last one did only if it terminated.
+        complete = [float(np.sum(e.rewards)) for e in collected[:-1]]
+        complete += [float(np.sum(collected[-1].rewards))] if collected[-1].terminations[-1] else []
+        described.append({"level": level.name, "index": index, **level.description, "transitions": count,
+                          "episodes": len(collected),
+                          "mean_return_of_complete_episodes": float(np.mean(complete)) if complete else None})
+    return episodes, described
 
 
 def episode_returns(env: gymnasium.Env, policy: Policy, *, episodes: int, seed: int) -> list[float]:

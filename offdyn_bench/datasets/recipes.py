@@ -24,10 +24,23 @@ from typing import Any, Literal
 from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.tasks import TASKS, TaskPair, get_task
 
-Quality = Literal["random", "source-policy", "human-operator", "source"]
-QUALITIES: tuple[Quality, ...] = ("random", "source-policy", "human-operator", "source")
-"""``random``, ``source-policy`` and ``human-operator`` are collected in the task's target;
-``source`` in its source (the offline-source tracks' data, see :data:`SKILL_LEVELS`)."""
+Quality = Literal["random", "source-policy", "human-operator", "source", "medium", "medium-replay", "medium-expert"]
+QUALITIES: tuple[Quality, ...] = ("random", "source-policy", "human-operator", "source", "medium", "medium-replay",
+                                  "medium-expert")
+"""``random``, ``source-policy``, ``human-operator`` and the :data:`H2O_QUALITIES` are collected in
+the task's target; ``source`` in its source (the offline-source tracks' data, see :data:`SKILL_LEVELS`)."""
+H2O_QUALITIES: tuple[Quality, ...] = ("medium", "medium-replay", "medium-expert")
+"""The target data of the H2O paper's Table 1 (D4RL's levels, made in this suite's target: the
+nominal robot), for the H2O settings only (:func:`is_h2o_setting`). All three come from one SAC
+run in the target, the oracle's own training (``assets/policies/sac-target``):
+
+* ``medium``: its checkpoint closest to a third of the way from random to the oracle's return
+  (``assets/policies/sac-target-medium``), with the usual Gaussian action noise;
+* ``medium-replay``: every transition that run stored up to that checkpoint, re-simulated from its
+  replay buffer (so it has the full physics state like every dataset) and checked against it;
+* ``medium-expert``: equal halves from the medium policy and the oracle, labelled by level.
+
+``scripts/make_h2o_behaviours.py`` trains the run and exports both policies."""
 # The wheel-legged robot's target data is a person's, as on H2O's real robot; it has no SAC
 # behaviour policy. Every other robot has no human operator.
 HUMAN_OPERATOR_ROBOTS = ("WheelLegged",)
@@ -46,7 +59,14 @@ DEFAULT_TRANSITIONS: Mapping[Quality, int] = {"random": 20_000, "source-policy":
                                                "human-operator": 100_000,
                                                # Source data is the plentiful side: each of the three skill
                                                # levels as large as a whole target dataset.
-                                               "source": 60_000}
+                                               "source": 60_000,
+                                               # H2O's Table 1 ran on D4RL's 1M-transition sets; a tenth of
+                                               # that keeps the builds in minutes. medium-expert is two
+                                               # medium-sized halves, as in D4RL. medium-replay is what the
+                                               # run stored up to the medium checkpoint (read from the
+                                               # policy's sidecar); this is the size before one exists.
+                                               "medium": 100_000, "medium-expert": 200_000,
+                                               "medium-replay": 100_000}
 SKILL_LEVELS: tuple[tuple[str, float | None], ...] = (("expert", 0.1), ("medium", 0.3), ("random", None))
 """The ``skill-mixture`` behaviour of ``source`` datasets, D4RL-style: equal thirds of the
 transitions from the task's sac-source policy with Gaussian action noise of std 0.1 (``expert``:
@@ -77,12 +97,25 @@ def task_slug(task_name: str) -> str:
     return task_name.replace(".", "p")
 
 
+MEDIUM_FRACTION = 1 / 3
+"""Where the ``medium`` policy sits between a uniform-random policy (0) and the oracle (1): D4RL's
+"about a third of the expert's performance", measured from random so that HalfCheetah's negative
+random return does not skew it."""
+
+
+def is_h2o_setting(pair: TaskPair) -> bool:
+    """The H2O paper's pairs: a shifted simulator (the source) and the nominal robot as the real
+    system (the target), which the D4RL-style :data:`H2O_QUALITIES` are collected in."""
+    return bool(pair.source_effects) and not pair.target_effects and pair.target_engine == "mujoco"
+
+
 def qualities_of(pair: TaskPair) -> tuple[Quality, ...]:
-    """The dataset qualities a pair has: ``random``, ``source-policy`` and ``source``, or, for the
-    wheel-legged robot, ``random`` and ``human-operator``."""
+    """The dataset qualities a pair has: ``random``, ``source-policy`` and ``source`` (and the
+    :data:`H2O_QUALITIES` for the H2O settings), or, for the wheel-legged robot, ``random`` and
+    ``human-operator``."""
     if pair.robot in HUMAN_OPERATOR_ROBOTS:
         return ("random", "human-operator")
-    return ("random", "source-policy", "source")
+    return ("random", "source-policy", "source") + (H2O_QUALITIES if is_h2o_setting(pair) else ())
 
 
 def _check_quality(pair: TaskPair, quality: str) -> None:
@@ -126,9 +159,10 @@ def dynamics_label(pair: TaskPair, side: Literal["source", "target"]) -> str:
     return f"{pair.robot.lower()}-nominal" if nominal else f"{pair.name}-{side}"
 
 
-def sac_policy_path(pair: TaskPair, role: Literal["sac-source", "sac-target"]) -> str:
-    """Where a pair's behaviour policy (``sac-source``, DAP's "RL on source") or oracle
-    (``sac-target``, "RL on target") ships, relative to the repo root.
+def sac_policy_path(pair: TaskPair, role: Literal["sac-source", "sac-target", "sac-target-medium"]) -> str:
+    """Where a pair's behaviour policy (``sac-source``, DAP's "RL on source"), oracle
+    (``sac-target``, "RL on target") or the oracle run's medium checkpoint (``sac-target-medium``,
+    the :data:`H2O_QUALITIES`' behaviour) ships, relative to the repo root.
 
     Files are named by the dynamics they were trained in, so every pair with a nominal source
     shares one behaviour policy, and every pair with a nominal target one oracle. Behaviour
@@ -138,7 +172,12 @@ def sac_policy_path(pair: TaskPair, role: Literal["sac-source", "sac-target"]) -
     return f"assets/policies/{role}/{dynamics_label(pair, side)}.safetensors"
 
 
-BEHAVIOUR_KINDS = ("uniform-random", "policy", "human-operator", "skill-mixture")
+BEHAVIOUR_KINDS = ("uniform-random", "policy", "human-operator", "skill-mixture", "training-replay",
+                   "medium-expert")
+POLICY_KINDS = ("policy", "skill-mixture", "training-replay", "medium-expert")
+"""Behaviour kinds that read a policy file (``Behaviour.policy``)."""
+# The kind each quality that has one fixed kind must have (the others take "policy" or "uniform-random").
+_QUALITY_KINDS = {"source": "skill-mixture", "medium-replay": "training-replay", "medium-expert": "medium-expert"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,11 +186,14 @@ class Behaviour:
 
     ``kind`` is ``uniform-random``, ``policy``, ``human-operator`` (the wheel-legged robot's
     balancing controller steered by an imperfect person, seeded from the recipe:
-    ``offdyn_bench/wheel_legged/operator.py``) or ``skill-mixture`` (``policy`` at each of
-    :data:`SKILL_LEVELS`; ``action_noise_std`` is then the expert level's).
+    ``offdyn_bench/wheel_legged/operator.py``), ``skill-mixture`` (``policy`` at each of
+    :data:`SKILL_LEVELS`; ``action_noise_std`` is then the expert level's), ``training-replay``
+    (the transitions the training run of ``policy``, a checkpoint, stored up to it; its sidecar
+    says how to re-run it) or ``medium-expert`` (equal halves from ``policy`` and the recipe's
+    oracle, both with ``action_noise_std``).
     """
 
-    kind: Literal["uniform-random", "policy", "human-operator", "skill-mixture"]
+    kind: Literal["uniform-random", "policy", "human-operator", "skill-mixture", "training-replay", "medium-expert"]
     policy: str | None = None
     policy_sha256: str | None = None
     action_noise_std: float = 0.0
@@ -161,7 +203,7 @@ class Behaviour:
             raise UnknownNameError("behaviour kind", self.kind, BEHAVIOUR_KINDS)
         if self.kind == "human-operator" and self.policy is not None:
             raise RecipeError("a 'human-operator' behaviour is the operator in code; it takes no policy file")
-        if self.kind in ("policy", "skill-mixture") and not self.policy:
+        if self.kind in POLICY_KINDS and not self.policy:
             raise RecipeError(f"a {self.kind!r} behaviour needs the path of its .safetensors file")
         if not self.action_noise_std >= 0:
             raise RecipeError(f"action_noise_std must be >= 0, got {self.action_noise_std!r}")
@@ -195,9 +237,13 @@ class Recipe:
         if self.collect_in != expected_side:
             raise RecipeError(f"{self.dataset_id}: {self.quality!r} datasets are collected in the {expected_side}, "
                               f"got collect_in={self.collect_in!r}")
-        if (self.quality == "source") != (self.behaviour.kind == "skill-mixture"):
-            raise RecipeError(f"{self.dataset_id}: the 'source' quality and only it has the 'skill-mixture' "
-                              f"behaviour, got quality {self.quality!r} with behaviour {self.behaviour.kind!r}")
+        for quality, kind in _QUALITY_KINDS.items():
+            if (self.quality == quality) != (self.behaviour.kind == kind):
+                raise RecipeError(f"{self.dataset_id}: the {quality!r} quality and only it has the {kind!r} "
+                                  f"behaviour, got quality {self.quality!r} with behaviour {self.behaviour.kind!r}")
+        if self.behaviour.kind == "medium-expert" and self.oracle_policy is None:
+            raise RecipeError(f"{self.dataset_id}: a 'medium-expert' behaviour takes its expert half from the "
+                              "recipe's oracle_policy, which is null")
         if self.data_format not in DATA_FORMATS:
             raise RecipeError(f"{self.dataset_id}: data_format {self.data_format!r}; expected one of "
                               f"{DATA_FORMATS} (Minari storages checked to build byte-identically)")
@@ -296,6 +342,12 @@ def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,
     elif quality == "source":
         behaviour = Behaviour(kind="skill-mixture", policy=sac_policy_path(pair, "sac-source"),
                               action_noise_std=SKILL_LEVELS[0][1])  # type: ignore[arg-type]
+    elif quality in H2O_QUALITIES:
+        kinds = {"medium": "policy", "medium-replay": "training-replay", "medium-expert": "medium-expert"}
+        behaviour = Behaviour(kind=kinds[quality], policy=sac_policy_path(pair, "sac-target-medium"),  # type: ignore[arg-type]
+                              action_noise_std=0.0 if quality == "medium-replay" else DEFAULT_ACTION_NOISE_STD)
+        if quality == "medium-replay" and num_transitions is None:
+            num_transitions = replay_transitions(behaviour.policy)  # type: ignore[arg-type]
     else:
         behaviour = Behaviour(kind="policy", policy=sac_policy_path(pair, "sac-source"),
                               action_noise_std=DEFAULT_ACTION_NOISE_STD)
@@ -307,6 +359,25 @@ def default_recipe(task: str | TaskPair, quality: str, *, version: int = 0,
         seed=seed, oracle_policy=sac_policy_path(pair, "sac-target"),
         collect_in="source" if quality == "source" else "target",
     )
+
+
+def replay_transitions(policy: str) -> int:
+    """How many transitions the training run of a checkpoint policy had stored when the checkpoint
+    was taken (its sidecar's ``training.checkpoint_step`` for one seed); the default size before
+    that policy exists."""
+    from offdyn_bench.datasets.policies import sidecar_path
+
+    sidecar = sidecar_path(pathlib.Path(policy) if pathlib.Path(policy).is_absolute() else REPO_ROOT / policy)
+    if not sidecar.is_file():
+        return DEFAULT_TRANSITIONS["medium-replay"]
+    try:
+        step = json.loads(sidecar.read_text())["training"]["checkpoint_step"]
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise RecipeError(f"{sidecar}: no training.checkpoint_step ({error!r}); it is not a checkpoint policy of "
+                          "scripts/make_h2o_behaviours.py") from None
+    if not isinstance(step, int) or isinstance(step, bool) or step < 1:
+        raise RecipeError(f"{sidecar}: training.checkpoint_step is {step!r}; expected an integer >= 1")
+    return step
 
 
 def default_tasks() -> list[TaskPair]:

@@ -1,0 +1,322 @@
+"""Target data from one SAC training run: the H2O settings' ``medium-expert`` and ``medium-replay``.
+
+``medium-replay`` is what D4RL calls it: every transition the run stored in its replay buffer until
+its policy reached the medium level. The run is re-run to the medium checkpoint from the settings
+its checkpoint policy's sidecar records (training is deterministic on one device), its actor is
+checked against the pinned policy, and then every episode in the buffer is simulated again from
+the training's own reset seed with the stored actions, so the dataset carries the full physics
+state like every other one. Each replayed observation, reward and termination must equal the
+buffer's (which holds them in float32); a mismatch stops the build.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import pathlib
+import tempfile
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from offdyn_bench.datasets.collect import Level, run_episode
+from offdyn_bench.datasets.policies import Policy, read_sidecar
+from offdyn_bench.datasets.recipes import Recipe, RecipeError, dynamics_label
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.tasks import TaskPair, get_task
+
+TRAINING_ENV_STREAM = 1
+"""The trainer's random stream of its training environments' episode seeds (``baselines.train``)."""
+MAX_SKIPPED_EPISODES = 2
+"""Episode indices the trainer may skip between two stored episodes: a checkpoint ends the running
+episode, and one that ended on the very step before it leaves an index with no transition."""
+
+
+class ReplayMismatchError(OffdynError):
+    """A re-run or re-simulation of a training run that does not reproduce what the run stored."""
+
+
+def medium_expert_levels(recipe: Recipe, medium: Policy, expert: Policy) -> list[Level]:
+    """D4RL's ``medium-expert``: the medium policy's half first, then the oracle's, both with the
+    recipe's Gaussian action noise, each level on its own noise stream."""
+    std = recipe.behaviour.action_noise_std
+    levels = []
+    for index, (name, actor, path) in enumerate((("medium", medium, recipe.behaviour.policy),
+                                                 ("expert", expert, recipe.oracle_policy))):
+        noise_seed = [recipe.seed, 2, index]
+        levels.append(Level(name, actor, {"actions": f"{path} (deterministic mean)", "action_noise_std": std,
+                                          "action_noise_seed": noise_seed}, std, noise_seed))
+    return levels
+
+
+@dataclasses.dataclass
+class _StoredActions:
+    """A "policy" that plays back one stored episode's actions, mapped as the trainer maps them."""
+
+    actions: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    step: int = 0
+
+    def scaled(self) -> np.ndarray:
+        """Every action as the env received it: the trainer's own scaling of a [-1, 1] action to
+        the box, in float64 (``baselines.train._Envs.step``)."""
+        return self.low + (self.actions.astype(np.float64) + 1.0) * 0.5 * (self.high - self.low)
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        self.step += 1
+        return self.scaled()[self.step - 1]
+
+
+def _training_settings(sidecar: Mapping[str, Any], where: str) -> tuple[dict[str, Any], int, int]:
+    """(the run's config.json, the checkpoint step, the seed's member) from a checkpoint policy's sidecar."""
+    training = sidecar.get("training")
+    config = training.get("config") if isinstance(training, Mapping) else None
+    step = training.get("checkpoint_step") if isinstance(training, Mapping) else None
+    member = training.get("checkpoint_member", 0) if isinstance(training, Mapping) else None
+    if not isinstance(config, Mapping) or not isinstance(step, int) or not isinstance(member, int):
+        raise RecipeError(f"{where}: the policy's sidecar has no training.config, training.checkpoint_step and "
+                          "training.checkpoint_member; only a checkpoint exported by scripts/make_h2o_behaviours.py "
+                          "says how to re-run the training that stored the replay")
+    for key in ("algo", "task", "steps", "seeds", "eval_every", "eval_episodes", "checkpoint_every", "config"):
+        if key not in config:
+            raise RecipeError(f"{where}: the policy's training.config lacks {key!r} (a train config.json has it)")
+    if config["algo"] not in ("sac-target", "sac-source"):
+        raise RecipeError(f"{where}: the replay of a {config['algo']!r} run; expected a plain SAC run "
+                          "(sac-target or sac-source), whose buffer holds every transition it stepped")
+    if step % int(config["checkpoint_every"]):
+        raise RecipeError(f"{where}: checkpoint_step {step} is not a multiple of the run's checkpoint_every "
+                          f"{config['checkpoint_every']}; no checkpoint was taken there")
+    return dict(config), step, member
+
+
+def _flat_overrides(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    """A method config as ``train``'s ``key=value`` overrides (every value, so defaults cannot drift)."""
+    import json
+
+    flat: dict[str, str] = {}
+    for key, value in config.items():
+        if isinstance(value, Mapping):
+            flat |= _flat_overrides(value, f"{prefix}{key}.")
+        else:
+            flat[f"{prefix}{key}"] = json.dumps(value)
+    return flat
+
+
+def rerun_to_checkpoint(sidecar: Mapping[str, Any], out: pathlib.Path, where: str) -> pathlib.Path:
+    """Re-run the training a checkpoint policy came from up to its checkpoint; the checkpoint's state file."""
+    from baselines.checkpoint import checkpoints
+    from baselines.train import train
+
+    config, step, _ = _training_settings(sidecar, where)
+    train(config["algo"], config["task"], steps=int(config["steps"]), out=out, seed=int(config["seeds"][0]),
+          n_seeds=len(config["seeds"]), overrides=_flat_overrides(config["config"]),
+          eval_every=int(config["eval_every"]), eval_episodes=int(config["eval_episodes"]),
+          checkpoint_every=int(config["checkpoint_every"]), progress=False, stop_after=step,
+          device=str(config.get("device", "cpu")))
+    found = [path for path in checkpoints(out) if path.name == f"step_{step:09d}"]
+    if not found:
+        raise ReplayMismatchError(f"{where}: the re-run wrote no checkpoint at step {step}")
+    return found[0] / "state.safetensors"
+
+
+def _weights_sha256(path: pathlib.Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _episodes_of(buffer: Mapping[str, np.ndarray]) -> list[slice]:
+    """Row ranges of the stored episodes: one ends where a transition terminated or where the next
+    row does not start from its next observation (a time limit, a checkpoint's cut)."""
+    observations, next_observations = buffer["observations"], buffer["next_observations"]
+    ends = [i for i in range(len(observations) - 1)
+            if buffer["terminations"][i] or not np.array_equal(next_observations[i], observations[i + 1])]
+    starts = [0] + [i + 1 for i in ends]
+    return [slice(a, b) for a, b in zip(starts, [i + 1 for i in ends] + [len(observations)])]
+
+
+def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,
+                            on_progress: Callable[[int], None] | None) -> tuple[list, dict[str, Any]]:
+    """The stored episodes of the recipe's training run up to its checkpoint, simulated again in
+    ``env`` with full infos; and what was replayed."""
+    from safetensors.numpy import load_file
+
+    from baselines.train import _episode_seed
+    from offdyn_bench.datasets.build import repo_path
+    from offdyn_bench.datasets.policies import import_sac_actor
+
+    where = recipe.dataset_id
+    policy_path = repo_path(str(recipe.behaviour.policy))
+    sidecar = read_sidecar(policy_path)
+    config, step, member = _training_settings(sidecar, where)
+    trained_in = dynamics_label(get_task(config["task"]), "target" if config["algo"] == "sac-target" else "source")
+    if trained_in != dynamics_label(pair, "target"):
+        raise RecipeError(f"{where}: {recipe.behaviour.policy} was trained in {trained_in}; this data is collected "
+                          f"in {dynamics_label(pair, 'target')}, so its replay is not this target's")
+    if step != recipe.num_transitions:  # plain SAC stores one transition per step: refuse before re-running
+        raise RecipeError(f"{where}: the run stored {step} transitions up to step {step}; the recipe asks for "
+                          f"{recipe.num_transitions} (medium-replay is all of them)")
+    with tempfile.TemporaryDirectory(prefix="offdyn-replay-") as scratch:
+        scratch_dir = pathlib.Path(scratch)
+        state_file = rerun_to_checkpoint(sidecar, scratch_dir / "run", where)
+        # The re-run must have trained the very policy the recipe pins, or its buffer is another run's.
+        again = import_sac_actor(state_file, scratch_dir / "actor.safetensors", member=member,
+                                 trained_on=str(sidecar.get("trained_on")), training={}, score=None)
+        if _weights_sha256(again) != _weights_sha256(policy_path):
+            raise ReplayMismatchError(f"{where}: re-running the training of {recipe.behaviour.policy} to step {step} "
+                                      "gave other actor weights than the pinned policy's (another platform, library "
+                                      "version or code); the replay it stored cannot be reproduced here")
+        state = load_file(str(state_file))
+    buffer = {name: state[f"buffer.{name}"][member] for name in
+              ("observations", "actions", "rewards", "next_observations", "terminations")}
+    rows = len(buffer["rewards"])
+    if rows != recipe.num_transitions:
+        raise RecipeError(f"{where}: the run stored {rows} transitions up to step {step}; the recipe asks for "
+                          f"{recipe.num_transitions} (medium-replay is all of them)")
+    space = env.action_space
+    assert isinstance(space, gymnasium.spaces.Box)
+    low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+    seed = int(config["seeds"][member])
+    episodes, seeds, index = [], [], 0
+    for number, rows_of in enumerate(_episodes_of(buffer)):
+        observations = buffer["observations"][rows_of]
+        # The trainer's episode index, skipping indices a checkpoint cut left without a transition.
+        for candidate in range(index, index + MAX_SKIPPED_EPISODES + 1):
+            reset = np.asarray(env.reset(seed=_episode_seed(seed, TRAINING_ENV_STREAM, candidate))[0], np.float32)
+            if np.array_equal(reset, observations[0]):
+                index = candidate
+                break
+        else:
+            tried = f"{index}-{index + MAX_SKIPPED_EPISODES}"
+            raise ReplayMismatchError(f"{where}: stored episode {number} (rows {rows_of.start}-{rows_of.stop - 1}) "
+                                      f"starts from no reset of training episodes {tried}")
+        player = _StoredActions(buffer["actions"][rows_of], low, high)
+        scaled = player.scaled()
+        if not np.array_equal(scaled.astype(space.dtype).astype(np.float64), scaled):
+            raise ReplayMismatchError(f"{where}: the trainer's actions are not exact in the action space's dtype "
+                                      f"{space.dtype}; a dataset could not store what the training applied")
+        # Stepped in float64 as the trainer did (a reward's control cost depends on the dtype).
+        episode = run_episode(env, player, seed=_episode_seed(seed, TRAINING_ENV_STREAM, index),
+                              max_steps=len(observations), episode_id=number, step_in_space_dtype=False)
+        stored_next = buffer["next_observations"][rows_of]
+        checks = {"observations": (np.asarray(episode.observations[1:], np.float32), stored_next),
+                  "rewards": (np.asarray(episode.rewards, np.float32), buffer["rewards"][rows_of]),
+                  "terminations": (np.asarray(episode.terminations, np.float32), buffer["terminations"][rows_of])}
+        for name, (replayed, stored) in checks.items():
+            if replayed.shape != stored.shape or not np.array_equal(replayed, stored):
+                raise ReplayMismatchError(f"{where}: replaying stored episode {number} gives other {name} than the "
+                                          "run stored; the target is not the training's environment")
+        episodes.append(episode)
+        seeds.append(_episode_seed(seed, TRAINING_ENV_STREAM, index))
+        index += 1
+        if on_progress is not None:
+            on_progress(len(observations))
+    described = {"training": {key: config[key] for key in ("algo", "task", "steps", "seeds", "checkpoint_every")},
+                 "checkpoint_step": step, "transitions": rows, "episodes": len(episodes),
+                 "episode_seeds": "the training run's own: SeedSequence([seed, 1, episode index]), in baselines.train",
+                 "checked": "every replayed observation, reward and termination equals the run's float32 buffer"}
+    return episodes, described
+
+
+def choose_medium(returns: Mapping[int, float], random_return: float, expert_return: float,
+                  fraction: float) -> int:
+    """The checkpoint step whose return is closest to ``fraction`` of the way from random to the
+    expert (the earliest on a tie); the expert's own final step is never a candidate."""
+    if not expert_return > random_return:
+        raise OffdynError(f"the expert's return {expert_return:.1f} does not exceed a random policy's "
+                          f"{random_return:.1f}: train longer before choosing a medium level")
+    final = max(returns)
+    candidates = sorted(step for step in returns if step != final)
+    if not candidates:
+        raise OffdynError("the run has one checkpoint; a medium level needs earlier ones (lower checkpoint_every)")
+    goal = random_return + fraction * (expert_return - random_return)
+    return min(candidates, key=lambda step: (abs(returns[step] - goal), step))
+
+
+KEPT_DIR = "kept-checkpoints"
+"""Where :func:`train_keeping_checkpoints` copies every checkpoint of a run (``train`` keeps two)."""
+
+
+def train_keeping_checkpoints(task: str, *, steps: int, checkpoint_every: int, out: pathlib.Path, seed: int = 0,
+                              overrides: Mapping[str, str] | None = None) -> pathlib.Path:
+    """``sac-target`` on ``task`` for ``steps``, one stretch of ``checkpoint_every`` steps at a time
+    (``train`` resumes exactly), copying each new checkpoint to ``out/kept-checkpoints`` so that
+    every level of the run can be chosen from afterwards. Resumable; returns the kept folder."""
+    import shutil
+
+    from baselines.checkpoint import checkpoints
+    from baselines.train import train
+
+    kept = out / KEPT_DIR
+    kept.mkdir(parents=True, exist_ok=True)
+    for stop in range(checkpoint_every, steps + 1, checkpoint_every):
+        if (kept / f"step_{stop:09d}").is_dir():
+            continue
+        train("sac-target", task, steps=steps, out=out / "run", seed=seed, overrides=overrides,
+              eval_every=checkpoint_every, checkpoint_every=checkpoint_every, progress=False, stop_after=stop)
+        latest = checkpoints(out / "run")[-1]
+        shutil.copytree(latest, kept / latest.name, dirs_exist_ok=True)
+    return kept
+
+
+def export_h2o_behaviours(run_dir: pathlib.Path, kept: pathlib.Path, pair: TaskPair, *, out_root: pathlib.Path,
+                          episodes: int, first_seed: int, fraction: float) -> dict[str, Any]:
+    """From a finished ``sac-target`` run in ``pair``'s target and a copy of every checkpoint it
+    took (``kept``): its final actor as the oracle and its checkpoint closest to ``fraction`` of
+    the oracle (from random) as the medium policy, each written where
+    :func:`~offdyn_bench.datasets.recipes.sac_policy_path` says under ``out_root``, with the run's
+    config and the checkpoint in the sidecar (which ``medium-replay`` re-runs)."""
+    import json
+
+    from baselines.checkpoint import checkpoint_step
+    from offdyn_bench.datasets.archive import sha256_file
+    from offdyn_bench.datasets.collect import episode_returns
+    from offdyn_bench.datasets.policies import UniformRandomPolicy, derived_seed, evaluate_policy, import_sac_actor
+    from offdyn_bench.datasets.recipes import sac_policy_path
+
+    config = json.loads((run_dir / "config.json").read_text())
+    if config.get("algo") != "sac-target" or not (run_dir / "result.json").is_file():
+        raise OffdynError(f"{run_dir}: expected a finished sac-target run (config.json algo sac-target, result.json)")
+    trained_on = get_task(config["task"]).env_id("target")
+    if dynamics_label(get_task(config["task"]), "target") != dynamics_label(pair, "target"):
+        raise OffdynError(f"{run_dir} trained in {dynamics_label(get_task(config['task']), 'target')}, not in "
+                          f"{pair.name}'s target ({dynamics_label(pair, 'target')})")
+    env = gymnasium.make(trained_on)
+    space = env.action_space
+    rng_seed = [first_seed, 1]
+    random_returns = episode_returns(env, UniformRandomPolicy(space.low, space.high, seed=derived_seed(rng_seed)),
+                                     episodes=episodes, seed=first_seed)
+    env.close()
+    random_return = float(np.mean(random_returns))
+
+    def training(step_dir: pathlib.Path) -> dict[str, Any]:
+        state = step_dir / "state.safetensors"
+        return {"config": config, "checkpoint": f"checkpoints/{step_dir.name}/state.safetensors",
+                "checkpoint_step": checkpoint_step(step_dir), "checkpoint_sha256": sha256_file(state)}
+
+    kept_steps = {checkpoint_step(path): path for path in sorted(kept.glob("step_*")) if path.is_dir()}
+    scores: dict[int, dict[str, Any]] = {}
+    with tempfile.TemporaryDirectory(prefix="offdyn-levels-") as scratch:
+        for step, step_dir in kept_steps.items():
+            actor = import_sac_actor(step_dir / "state.safetensors", pathlib.Path(scratch) / f"{step_dir.name}.st",
+                                     member=0, trained_on=trained_on, training=training(step_dir), score=None)
+            scores[step] = evaluate_policy(actor, trained_on, episodes, first_seed)
+    returns = {step: score["mean_return"] for step, score in scores.items()}
+    final = max(returns, default=None)
+    if final != int(config["steps"]):
+        raise OffdynError(f"{kept}: the last kept checkpoint is at step {final}, not the run's final step "
+                          f"{config['steps']}")
+    medium = choose_medium(returns, random_return, returns[final], fraction)
+    level = {"fraction": fraction, "random_return": random_return, "random_rng_seed": rng_seed,
+             "expert_return": returns[final], "chosen_step": medium,
+             "checkpoint_returns": {str(step): r for step, r in sorted(returns.items())}}
+    written = {}
+    for role, step in (("sac-target", final), ("sac-target-medium", medium)):
+        out = out_root / sac_policy_path(pair, role)  # type: ignore[arg-type]
+        step_dir = kept_steps[step]
+        import_sac_actor(step_dir / "state.safetensors", out, member=0, trained_on=trained_on,
+                         training=training(step_dir) | ({"level": level} if role == "sac-target-medium" else {}),
+                         score={"evaluation": scores[step], "run_result": None})
+        written[role] = out
+    return {"expert": written["sac-target"], "medium": written["sac-target-medium"], "level": level}
