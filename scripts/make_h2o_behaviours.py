@@ -24,6 +24,7 @@ import pathlib
 
 from offdyn_bench.datasets.recipes import MEDIUM_FRACTION, REFERENCE_EPISODES, REFERENCE_SEED, REPO_ROOT, is_h2o_setting
 from offdyn_bench.datasets.training_data import export_h2o_behaviours, train_keeping_checkpoints
+from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TASKS
 
 
@@ -46,9 +47,12 @@ def main() -> None:
         parser.error(f"--checkpoint-every {every} must divide --steps {args.steps}")
     pair = next(p for p in TASKS.values() if is_h2o_setting(p) and p.robot.lower() == args.robot)
     out = args.runs / args.robot
-    kept = train_keeping_checkpoints(pair.name, steps=args.steps, checkpoint_every=every, out=out, seed=args.seed)
-    summary = export_h2o_behaviours(out / "run", kept, pair, out_root=args.out_root, episodes=REFERENCE_EPISODES,
-                                    first_seed=REFERENCE_SEED, fraction=MEDIUM_FRACTION)
+    try:
+        kept = train_keeping_checkpoints(pair.name, steps=args.steps, checkpoint_every=every, out=out, seed=args.seed)
+        summary = export_h2o_behaviours(out / "run", kept, pair, out_root=args.out_root, episodes=REFERENCE_EPISODES,
+                                        first_seed=REFERENCE_SEED, fraction=MEDIUM_FRACTION)
+    except OffdynError as error:
+        raise SystemExit(f"error: {error}") from None
     level = summary["level"]
     print(json.dumps({"oracle": str(summary["expert"]), "medium": str(summary["medium"]),
                       "random_return": level["random_return"], "oracle_return": level["expert_return"],
