@@ -105,8 +105,10 @@ def _flat_overrides(config: Mapping[str, Any], prefix: str = "") -> dict[str, st
     return flat
 
 
-def rerun_to_checkpoint(sidecar: Mapping[str, Any], out: pathlib.Path, where: str) -> pathlib.Path:
-    """Re-run the training a checkpoint policy came from up to its checkpoint; the checkpoint's state file."""
+def rerun_to_checkpoint(sidecar: Mapping[str, Any], out: pathlib.Path, where: str,
+                        progress: bool = False) -> pathlib.Path:
+    """Re-run the training a checkpoint policy came from up to its checkpoint (with the trainer's
+    progress bar when ``progress``: at full scale it takes hours); the checkpoint's state file."""
     from baselines.checkpoint import checkpoints
     from baselines.train import train
 
@@ -114,7 +116,7 @@ def rerun_to_checkpoint(sidecar: Mapping[str, Any], out: pathlib.Path, where: st
     train(config["algo"], config["task"], steps=int(config["steps"]), out=out, seed=int(config["seeds"][0]),
           n_seeds=len(config["seeds"]), overrides=_flat_overrides(config["config"]),
           eval_every=int(config["eval_every"]), eval_episodes=int(config["eval_episodes"]),
-          checkpoint_every=int(config["checkpoint_every"]), progress=False, stop_after=step,
+          checkpoint_every=int(config["checkpoint_every"]), progress=progress, stop_after=step,
           device=str(config.get("device", "cpu")))
     found = [path for path in checkpoints(out) if path.name == f"step_{step:09d}"]
     if not found:
@@ -159,7 +161,7 @@ def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,
                           f"{recipe.num_transitions} (medium-replay is all of them)")
     with tempfile.TemporaryDirectory(prefix="offdyn-replay-") as scratch:
         scratch_dir = pathlib.Path(scratch)
-        state_file = rerun_to_checkpoint(sidecar, scratch_dir / "run", where)
+        state_file = rerun_to_checkpoint(sidecar, scratch_dir / "run", where, progress=on_progress is not None)
         # The re-run must have trained the very policy the recipe pins, or its buffer is another run's.
         again = import_sac_actor(state_file, scratch_dir / "actor.safetensors", member=member,
                                  trained_on=str(sidecar.get("trained_on")), training={}, score=None)
