@@ -235,18 +235,28 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                                   if records[run.run_id].status == "done" and records[run.run_id].wall_time_s > 0]
                 tries_left = {run.run_id: 1 + spec.max_retries for run in pending}
                 in_flight: dict[Any, Run] = {}
+                trainer_of = {run.folder: run for run in runs if run.shared_training is None}
                 try:
                     while pending or in_flight:
                         capacity = engine.capacity
                         while pending and len(in_flight) < capacity:
-                            # Never two runs on one training folder at once: a run that scores
-                            # another's policy waits for its training, then only evaluates.
-                            busy = {other.training_folder for other in in_flight.values()}
-                            ready = next((r for r in pending if r.training_folder not in busy), None)
+                            # A run that scores another's policy waits until that run is done
+                            # (then it only evaluates) or has failed for good (then so has it).
+                            ready = next((r for r in pending if r.shared_training is None
+                                          or records[trainer_of[r.training_folder].run_id].status
+                                          in ("done", "failed")), None)
                             if ready is None:
                                 break
                             run = ready
                             pending.remove(run)
+                            donor = trainer_of.get(run.training_folder) if run.shared_training is not None else None
+                            if donor is not None and records[donor.run_id].status == "failed":
+                                # Its training is the run that failed: retrying it here would repeat that.
+                                record = records[run.run_id]
+                                record.status = "failed"
+                                record.error = f"the training it scores ({donor.run_id}) failed; see {donor.log}"
+                                say(f"sweep: {run.run_id} failed: {record.error}")
+                                continue
                             record = records[run.run_id]
                             record.status = "running"
                             record.attempts += 1

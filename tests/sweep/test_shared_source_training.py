@@ -128,3 +128,21 @@ def test_dry_run_names_the_policy_a_shared_run_scores(tmp_path, tiny_spec, write
     first = tmp_path / "out" / "runs" / "sac-source" / FIRST / "seed-0"
     assert f"sac-source/{SECOND}/seed-0 (to run, scores the policy of {first})" in result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_runs_scoring_a_failed_training_fail_with_it_without_retrying_it(tmp_path, tiny_spec, write_spec):
+    from offdyn_bench.sweep.driver import run_sweep
+
+    out = tmp_path / "out"
+    spec = parse_spec(tiny_spec(out, tasks=[FIRST, SECOND], seeds=1, max_retries=1), source="failing")
+    # The first task's folder holds something else: `train` refuses it on every attempt.
+    blocked = out / "runs" / "sac-source" / FIRST / "seed-0"
+    blocked.mkdir(parents=True)
+    (blocked / "notes.txt").write_text("not a run")
+    report = run_sweep(spec, workers=2, echo=None)
+    first, second = report.runs
+    assert report.records[first.run_id].status == "failed" and report.records[first.run_id].attempts == 2
+    shared = report.records[second.run_id]
+    assert shared.status == "failed" and shared.attempts == 0  # never launched: it would repeat the failure
+    assert shared.error == f"the training it scores ({first.run_id}) failed; see {first.log}"
+    assert not second.log.exists() and sorted(p.name for p in blocked.iterdir()) == ["notes.txt"]
