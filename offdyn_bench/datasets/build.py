@@ -351,7 +351,8 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
         "recipe": recipe.to_dict(),
         "task": pair.to_dict(),
         "behaviour": behaviour,
-        "seeds": {"episode_seeds": f"{recipe.seed} + episode index", "episodes": len(episodes)},
+        "seeds": {"episode_seeds": (f"{recipe.seed} + episode index" if recipe.behaviour.kind != "training-replay"
+                                    else "the training run's own (see behaviour.replay)"), "episodes": len(episodes)},
         "reference_scores": scores,
         "versions": versions(),
         "infos": INFOS_LAYOUT,
