@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import pathlib
 
 import minari
 import numpy as np
