@@ -92,6 +92,27 @@ def test_the_shipped_reference_file_has_a_random_reference_for_every_core_task()
         assert random.provenance["versions"]["mujoco"] == "3.17.0"
 
 
+def test_every_shipped_oracle_is_a_protocol_result_of_sac_target():
+    """The oracle references that ship (assets/reference_scores.json) anchor normalized scores:
+    each must be sac-target's final policies, at least MIN_SEEDS training seeds with the protocol's
+    episodes, its mean the mean of its stored returns, and above the task's random reference."""
+    from offdyn_bench.protocol import MIN_SEEDS
+
+    for task, kinds in reference_scores().items():
+        for kind, score in kinds.items():
+            if not kind.startswith("oracle/"):
+                continue
+            provenance = score.provenance
+            assert provenance["method"] == "sac-target" and kind == f"oracle/{provenance['budget']}", task
+            assert len(provenance["seeds"]) >= MIN_SEEDS and provenance["episodes_per_seed"] == EVAL_EPISODES, task
+            assert provenance["episode_seeds"] == list(EPISODE_SEEDS), task
+            assert len(score.returns) == len(provenance["seeds"]) * EVAL_EPISODES, task
+            assert score.mean_return == pytest.approx(np.mean(score.returns)), task
+            assert score.mean_return > kinds["random"].mean_return, task
+            assert all(run["steps"] == protocol.get_budget(provenance["budget"]).source_steps
+                       for run in provenance["runs"]), task
+
+
 def test_random_reference_is_reproducible(tmp_path):
     path = tmp_path / "refs.json"
     first = protocol.record_random_reference("invertedpendulum-gravity-3.0", path, episodes=[5, 6])
