@@ -81,7 +81,7 @@ def score_report(records: Sequence[Mapping[str, Any]], budget: str | None = None
     grouped: dict[str, list[Mapping[str, Any]]] = {}
     for record in records:
         grouped.setdefault(str(record.get("method") or "agent"), []).append(record)
-    task_sets = {method: sorted(r["task"] for r in rs) for method, rs in grouped.items()}
+    task_sets = {method: sorted({r["task"] for r in rs}) for method, rs in grouped.items()}
     tasks = tuple(next(iter(task_sets.values())))
     if any(tuple(t) != tasks for t in task_sets.values()):
         raise ProtocolError("methods cover different tasks: " + "; ".join(f"{m}: {', '.join(t)}"

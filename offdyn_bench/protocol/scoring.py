@@ -46,14 +46,19 @@ def method_scores(method: str, records: Iterable[Mapping[str, Any]], budget: str
                   tasks: Sequence[str] | None = None,
                   reference_file: str | None = None,
                   references: Mapping[str, tuple[float, float]] | None = None) -> MethodScores:
-    """Collect ``method``'s records (one per task) into score matrices, normalized against the
-    reference file at ``budget``, or against explicit ``references`` (task -> (J_random,
-    J_oracle)), e.g. a demo's own oracle run at a budget of its own."""
+    """Collect ``method``'s records into score matrices, normalized against the reference file at
+    ``budget``, or against explicit ``references`` (task -> (J_random, J_oracle)), e.g. a demo's
+    own oracle run at a budget of its own. A task's seeds may come in several records (one run
+    folder per seed, as a sweep makes them); a seed in two of them is refused."""
     by_task: dict[str, dict[int, float]] = {}
     for record in records:
-        if record["task"] in by_task:
-            raise ProtocolError(f"{method}: two evaluations of task {record['task']!r}")
-        by_task[record["task"]] = seed_means(record)
+        means = seed_means(record)
+        known = by_task.setdefault(record["task"], {})
+        twice = sorted(set(means) & set(known))
+        if twice:
+            raise ProtocolError(f"{method}: training seed(s) {twice} of task {record['task']!r} are in two "
+                                "evaluations; pass each seed's evaluation once")
+        known.update(means)
     tasks = tuple(tasks) if tasks is not None else tuple(sorted(by_task))
     absent = [t for t in tasks if t not in by_task]
     if absent:

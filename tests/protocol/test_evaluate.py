@@ -209,6 +209,18 @@ def test_score_report_by_hand():
         score_report(records[:3], references=references)
 
 
+def test_a_tasks_seeds_may_come_in_one_record_per_run():
+    """A sweep evaluates each seed in its own run folder: those records score like one record
+    holding every seed; a seed given twice is refused."""
+    references = {"a": (0.0, 10.0)}
+    whole = score_report([_record("m1", "a", [[1.0, 3.0], [5.0, 5.0], [10.0, 10.0]])], references=references)
+    per_run = [_record("m1", "a", [[1.0, 3.0]]), _record("m1", "a", [[5.0, 5.0], [10.0, 10.0]])]
+    per_run[1]["seeds"] = [{"seed": 1, "returns": [5.0, 5.0]}, {"seed": 2, "returns": [10.0, 10.0]}]
+    assert score_report(per_run, references=references).to_dict() == whole.to_dict()
+    with pytest.raises(ProtocolError, match=r"training seed\(s\) \[0\] of task 'a' are in two evaluations"):
+        score_report([per_run[0], per_run[0]], references=references)
+
+
 def test_a_matl_run_is_evaluated_with_its_robot_policy(tmp_path):
     """TRPO-based runs carry no SAC actor: evaluate reads their deployed (robot) policy."""
     small = {"trpo.hidden_sizes": "[16, 16]", "discriminator.hidden_sizes": "[16]", "rollout_steps": "20",
