@@ -59,15 +59,16 @@ class _StoredActions:
     low: np.ndarray
     high: np.ndarray
     step: int = 0
+    scaled: np.ndarray = dataclasses.field(init=False)
 
-    def scaled(self) -> np.ndarray:
-        """Every action as the env received it: the trainer's own scaling of a [-1, 1] action to
-        the box, in float64 (``baselines.train._Envs.step``)."""
-        return self.low + (self.actions.astype(np.float64) + 1.0) * 0.5 * (self.high - self.low)
+    def __post_init__(self) -> None:
+        # Every action as the env received it: the trainer's own scaling of a [-1, 1] action to
+        # the box, in float64 (baselines.train._Envs.step).
+        self.scaled = self.low + (self.actions.astype(np.float64) + 1.0) * 0.5 * (self.high - self.low)
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         self.step += 1
-        return self.scaled()[self.step - 1]
+        return self.scaled[self.step - 1]
 
 
 def _training_settings(sidecar: Mapping[str, Any], where: str) -> tuple[dict[str, Any], int, int]:
@@ -180,7 +181,7 @@ def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,
     assert isinstance(space, gymnasium.spaces.Box)
     low, high = space.low.astype(np.float64), space.high.astype(np.float64)
     seed = int(config["seeds"][member])
-    episodes, seeds, index = [], [], 0
+    episodes, index = [], 0
     for number, rows_of in enumerate(_episodes_of(buffer)):
         observations = buffer["observations"][rows_of]
         # The trainer's episode index, skipping indices a checkpoint cut left without a transition.
@@ -194,7 +195,7 @@ def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,
             raise ReplayMismatchError(f"{where}: stored episode {number} (rows {rows_of.start}-{rows_of.stop - 1}) "
                                       f"starts from no reset of training episodes {tried}")
         player = _StoredActions(buffer["actions"][rows_of], low, high)
-        scaled = player.scaled()
+        scaled = player.scaled
         if not np.array_equal(scaled.astype(space.dtype).astype(np.float64), scaled):
             raise ReplayMismatchError(f"{where}: the trainer's actions are not exact in the action space's dtype "
                                       f"{space.dtype}; a dataset could not store what the training applied")
@@ -210,7 +211,6 @@ def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,
                 raise ReplayMismatchError(f"{where}: replaying stored episode {number} gives other {name} than the "
                                           "run stored; the target is not the training's environment")
         episodes.append(episode)
-        seeds.append(_episode_seed(seed, TRAINING_ENV_STREAM, index))
         index += 1
         if on_progress is not None:
             on_progress(len(observations))
