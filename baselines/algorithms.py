@@ -158,18 +158,23 @@ def _parse(raw: str, current: Any, key: str, algo: str) -> Any:
     return value
 
 
-def config_from_dict(algo: str, data: Mapping[str, Any]) -> Any:
-    """Rebuild a config from :func:`config_to_dict` output (used when loading a trained policy)."""
-    config = get_algorithm(algo).default_config()
+def config_overrides(data: Mapping[str, Any]) -> dict[str, str]:
+    """:func:`config_to_dict` output as ``key=value`` overrides (``sac.batch_size`` -> ``"256"``):
+    every value, so a run rebuilt from them cannot drift with a changed default."""
     flat: dict[str, str] = {}
 
     def walk(prefix: str, value: Any) -> None:
-        if isinstance(value, dict):
+        if isinstance(value, Mapping):
             for k, v in value.items():
                 walk(f"{prefix}{k}.", v)
         else:
             flat[prefix[:-1]] = json.dumps(value)
 
     walk("", dict(data))
-    return apply_overrides(config, flat, algo)
+    return flat
+
+
+def config_from_dict(algo: str, data: Mapping[str, Any]) -> Any:
+    """Rebuild a config from :func:`config_to_dict` output (used when loading a trained policy)."""
+    return apply_overrides(get_algorithm(algo).default_config(), config_overrides(data), algo)
 

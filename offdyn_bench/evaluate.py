@@ -262,15 +262,16 @@ def _check_shared_source(loaded: LoadedAgents, task: str) -> None:
     from offdyn_bench.tasks import get_task
 
     algorithm = ALGORITHMS.get(loaded.method or "")
+    trained, scored = get_task(loaded.task or ""), get_task(task)
     if algorithm is None or not algorithm.source_only:
         raise EvaluationError(f"the run was trained on {loaded.task!r}, not {task!r}; only a run of a method that "
                               "trains in the source alone ("
                               + ", ".join(name for name, a in ALGORITHMS.items() if a.source_only)
                               + f") may be scored on another task with the same source, and {loaded.method!r} "
                               "is not one")
-    if get_task(loaded.task or "").source_key != get_task(task).source_key:
+    if trained.source_key != scored.source_key:
         raise EvaluationError(f"the run was trained on {loaded.task!r}, whose source is not {task!r}'s source "
-                              f"({get_task(loaded.task or '').source_key} against {get_task(task).source_key}); "
+                              f"({trained.source_key} against {scored.source_key}); "
                               f"train {loaded.method} on {task!r} instead")
 
 

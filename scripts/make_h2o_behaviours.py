@@ -2,7 +2,7 @@
 
 The H2O pairs (``*-h2o-*``) shift the simulator and keep the nominal robot as the target, so one
 ``sac-target`` run per robot serves all three of its settings. This script trains it (resumable,
-every checkpoint kept), then writes
+every checkpoint's actor kept), then writes
 
 * ``assets/policies/sac-target/<robot>-nominal.safetensors``: the final policy, the oracle that
   scores these tasks' datasets and the ``medium-expert`` data's expert half;

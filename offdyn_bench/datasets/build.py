@@ -29,6 +29,7 @@ from offdyn_bench.datasets.collect import (
     collect_transitions,
     episode_returns,
     gaussian_action_noise,
+    random_reference_returns,
 )
 from offdyn_bench.datasets.install import InstallError, dataset_dir, install_tree, is_installed, resolve_root, staging
 from offdyn_bench.datasets.manifest import (
@@ -240,11 +241,8 @@ def reference_scores(recipe: Recipe, pair: TaskPair, oracle_path: pathlib.Path |
     the ``sac-target`` oracle; both on the same fixed episode seeds, with their provenance."""
     env = pair.make("target")
     seeds = list(range(recipe.reference_seed, recipe.reference_seed + recipe.reference_episodes))
-    rng_seed = [recipe.reference_seed, 1]
-    space = env.action_space
-    assert isinstance(space, gymnasium.spaces.Box)
-    random_policy = UniformRandomPolicy(space.low, space.high, seed=derived_seed(rng_seed))
-    random_returns = episode_returns(env, random_policy, episodes=recipe.reference_episodes, seed=seeds[0])
+    random_returns, rng_seed = random_reference_returns(env, episodes=recipe.reference_episodes,
+                                                        first_seed=recipe.reference_seed)
     common = {"env_id": pair.env_id("target"), "episode_seeds": seeds, "versions": versions(),
               "command": f"offdyn-bench datasets build {recipe.dataset_id}"}
     scores: dict[str, Any] = {

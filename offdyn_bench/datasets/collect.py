@@ -22,7 +22,7 @@ import gymnasium
 import numpy as np
 from minari.data_collector.episode_buffer import EpisodeBuffer
 
-from offdyn_bench.datasets.policies import Policy, derived_seed
+from offdyn_bench.datasets.policies import Policy, UniformRandomPolicy, derived_seed
 from offdyn_bench.errors import OffdynError
 
 # prev_state is state[t] of the row before: stored once, checked equal while collecting.
@@ -212,3 +212,13 @@ def episode_returns(env: gymnasium.Env, policy: Policy, *, episodes: int, seed: 
             done = terminated or truncated
         returns.append(total)
     return returns
+
+
+def random_reference_returns(env: gymnasium.Env, *, episodes: int, first_seed: int) -> tuple[list[float], list[int]]:
+    """Returns of uniform-random actions on episode seeds ``first_seed ...``, its generator seeded
+    from ``[first_seed, 1]`` (the datasets' reference-score protocol); and that generator seed."""
+    space = env.action_space
+    assert isinstance(space, gymnasium.spaces.Box)
+    rng_seed = [first_seed, 1]
+    policy = UniformRandomPolicy(space.low, space.high, seed=derived_seed(rng_seed))
+    return episode_returns(env, policy, episodes=episodes, seed=first_seed), rng_seed

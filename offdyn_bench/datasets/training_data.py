@@ -12,7 +12,6 @@ buffer's (which holds them in float32); a mismatch stops the build.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import pathlib
 import tempfile
 from collections.abc import Callable, Mapping
@@ -21,6 +20,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 
+from offdyn_bench.datasets.archive import sha256_file
 from offdyn_bench.datasets.collect import Level, run_episode
 from offdyn_bench.datasets.policies import Policy, read_sidecar
 from offdyn_bench.datasets.recipes import Recipe, RecipeError, dynamics_label
@@ -93,29 +93,17 @@ def _training_settings(sidecar: Mapping[str, Any], where: str) -> tuple[dict[str
     return dict(config), step, member
 
 
-def _flat_overrides(config: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
-    """A method config as ``train``'s ``key=value`` overrides (every value, so defaults cannot drift)."""
-    import json
-
-    flat: dict[str, str] = {}
-    for key, value in config.items():
-        if isinstance(value, Mapping):
-            flat |= _flat_overrides(value, f"{prefix}{key}.")
-        else:
-            flat[f"{prefix}{key}"] = json.dumps(value)
-    return flat
-
-
 def rerun_to_checkpoint(sidecar: Mapping[str, Any], out: pathlib.Path, where: str,
                         progress: bool = False) -> pathlib.Path:
     """Re-run the training a checkpoint policy came from up to its checkpoint (with the trainer's
     progress bar when ``progress``: at full scale it takes hours); the checkpoint's state file."""
+    from baselines.algorithms import config_overrides
     from baselines.checkpoint import checkpoints
     from baselines.train import train
 
     config, step, _ = _training_settings(sidecar, where)
     train(config["algo"], config["task"], steps=int(config["steps"]), out=out, seed=int(config["seeds"][0]),
-          n_seeds=len(config["seeds"]), overrides=_flat_overrides(config["config"]),
+          n_seeds=len(config["seeds"]), overrides=config_overrides(config["config"]),
           eval_every=int(config["eval_every"]), eval_episodes=int(config["eval_episodes"]),
           checkpoint_every=int(config["checkpoint_every"]), progress=progress, stop_after=step,
           device=str(config.get("device", "cpu")))
@@ -123,10 +111,6 @@ def rerun_to_checkpoint(sidecar: Mapping[str, Any], out: pathlib.Path, where: st
     if not found:
         raise ReplayMismatchError(f"{where}: the re-run wrote no checkpoint at step {step}")
     return found[0] / "state.safetensors"
-
-
-def _weights_sha256(path: pathlib.Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _episodes_of(buffer: Mapping[str, np.ndarray]) -> list[slice]:
@@ -166,7 +150,7 @@ def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,
         # The re-run must have trained the very policy the recipe pins, or its buffer is another run's.
         again = import_sac_actor(state_file, scratch_dir / "actor.safetensors", member=member,
                                  trained_on=str(sidecar.get("trained_on")), training={}, score=None)
-        if _weights_sha256(again) != _weights_sha256(policy_path):
+        if sha256_file(again) != sha256_file(policy_path):
             raise ReplayMismatchError(f"{where}: re-running the training of {recipe.behaviour.policy} to step {step} "
                                       "gave other actor weights than the pinned policy's (another platform, library "
                                       "version or code); the replay it stored cannot be reproduced here")
@@ -237,44 +221,58 @@ def choose_medium(returns: Mapping[int, float], random_return: float, expert_ret
 
 
 KEPT_DIR = "kept-checkpoints"
-"""Where :func:`train_keeping_checkpoints` copies every checkpoint of a run (``train`` keeps two)."""
+"""Where :func:`train_keeping_checkpoints` keeps the actor of every checkpoint of a run (``train``
+keeps two checkpoints, each with the whole replay buffer)."""
+KEPT_ACTOR = "actor.safetensors"
 
 
 def train_keeping_checkpoints(task: str, *, steps: int, checkpoint_every: int, out: pathlib.Path, seed: int = 0,
                               overrides: Mapping[str, str] | None = None) -> pathlib.Path:
     """``sac-target`` on ``task`` for ``steps``, one stretch of ``checkpoint_every`` steps at a time
-    (``train`` resumes exactly), copying each new checkpoint to ``out/kept-checkpoints`` so that
-    every level of the run can be chosen from afterwards. Resumable; returns the kept folder."""
-    import shutil
+    (``train`` resumes exactly), keeping each new checkpoint's actor in
+    ``out/kept-checkpoints/step_<N>/`` (its sidecar names the run's config and the checkpoint with
+    its sha256), so that every level of the run can be chosen from afterwards. Only the actors are
+    kept: a checkpoint also holds the replay buffer, gigabytes over a 1M-step run, and
+    ``medium-replay`` re-runs the training for it anyway. Resumable; returns the kept folder."""
+    import json
 
     from baselines.checkpoint import checkpoints
     from baselines.train import train
+    from offdyn_bench.datasets.policies import import_sac_actor
 
+    trained_on = get_task(task).env_id("target")
     kept = out / KEPT_DIR
     kept.mkdir(parents=True, exist_ok=True)
     for stop in range(checkpoint_every, steps + 1, checkpoint_every):
-        if (kept / f"step_{stop:09d}").is_dir():
+        actor = kept / f"step_{stop:09d}" / KEPT_ACTOR
+        if actor.is_file():
             continue
         train("sac-target", task, steps=steps, out=out / "run", seed=seed, overrides=overrides,
               eval_every=checkpoint_every, checkpoint_every=checkpoint_every, progress=False, stop_after=stop)
         latest = checkpoints(out / "run")[-1]
-        shutil.copytree(latest, kept / latest.name, dirs_exist_ok=True)
+        if latest.name != actor.parent.name:
+            raise OffdynError(f"{out / 'run'}: the newest checkpoint is {latest.name}, expected {actor.parent.name}")
+        state = latest / "state.safetensors"
+        training = {"config": json.loads((out / "run" / "config.json").read_text()),
+                    "checkpoint": f"checkpoints/{latest.name}/state.safetensors", "checkpoint_step": stop,
+                    "checkpoint_sha256": sha256_file(state)}
+        import_sac_actor(state, actor, member=0, trained_on=trained_on, training=training, score=None)
     return kept
 
 
 def export_h2o_behaviours(run_dir: pathlib.Path, kept: pathlib.Path, pair: TaskPair, *, out_root: pathlib.Path,
                           episodes: int, first_seed: int, fraction: float) -> dict[str, Any]:
-    """From a finished ``sac-target`` run in ``pair``'s target and a copy of every checkpoint it
+    """From a finished ``sac-target`` run in ``pair``'s target and the actor of every checkpoint it
     took (``kept``): its final actor as the oracle and its checkpoint closest to ``fraction`` of
     the oracle (from random) as the medium policy, each written where
     :func:`~offdyn_bench.datasets.recipes.sac_policy_path` says under ``out_root``, with the run's
     config and the checkpoint in the sidecar (which ``medium-replay`` re-runs)."""
     import json
+    import shutil
 
     from baselines.checkpoint import checkpoint_step
-    from offdyn_bench.datasets.archive import sha256_file
-    from offdyn_bench.datasets.collect import episode_returns
-    from offdyn_bench.datasets.policies import UniformRandomPolicy, derived_seed, evaluate_policy, import_sac_actor
+    from offdyn_bench.datasets.collect import random_reference_returns
+    from offdyn_bench.datasets.policies import evaluate_policy, sidecar_path, update_sidecar
     from offdyn_bench.datasets.recipes import sac_policy_path
 
     config = json.loads((run_dir / "config.json").read_text())
@@ -285,25 +283,13 @@ def export_h2o_behaviours(run_dir: pathlib.Path, kept: pathlib.Path, pair: TaskP
         raise OffdynError(f"{run_dir} trained in {dynamics_label(get_task(config['task']), 'target')}, not in "
                           f"{pair.name}'s target ({dynamics_label(pair, 'target')})")
     env = gymnasium.make(trained_on)
-    space = env.action_space
-    rng_seed = [first_seed, 1]
-    random_returns = episode_returns(env, UniformRandomPolicy(space.low, space.high, seed=derived_seed(rng_seed)),
-                                     episodes=episodes, seed=first_seed)
+    random_returns, rng_seed = random_reference_returns(env, episodes=episodes, first_seed=first_seed)
     env.close()
     random_return = float(np.mean(random_returns))
 
-    def training(step_dir: pathlib.Path) -> dict[str, Any]:
-        state = step_dir / "state.safetensors"
-        return {"config": config, "checkpoint": f"checkpoints/{step_dir.name}/state.safetensors",
-                "checkpoint_step": checkpoint_step(step_dir), "checkpoint_sha256": sha256_file(state)}
-
-    kept_steps = {checkpoint_step(path): path for path in sorted(kept.glob("step_*")) if path.is_dir()}
-    scores: dict[int, dict[str, Any]] = {}
-    with tempfile.TemporaryDirectory(prefix="offdyn-levels-") as scratch:
-        for step, step_dir in kept_steps.items():
-            actor = import_sac_actor(step_dir / "state.safetensors", pathlib.Path(scratch) / f"{step_dir.name}.st",
-                                     member=0, trained_on=trained_on, training=training(step_dir), score=None)
-            scores[step] = evaluate_policy(actor, trained_on, episodes, first_seed)
+    actors = {checkpoint_step(path): path / KEPT_ACTOR for path in sorted(kept.glob("step_*"))
+              if (path / KEPT_ACTOR).is_file()}
+    scores = {step: evaluate_policy(actor, trained_on, episodes, first_seed) for step, actor in actors.items()}
     returns = {step: score["mean_return"] for step, score in scores.items()}
     final = max(returns, default=None)
     if final != int(config["steps"]):
@@ -316,9 +302,10 @@ def export_h2o_behaviours(run_dir: pathlib.Path, kept: pathlib.Path, pair: TaskP
     written = {}
     for role, step in (("sac-target", final), ("sac-target-medium", medium)):
         out = out_root / sac_policy_path(pair, role)  # type: ignore[arg-type]
-        step_dir = kept_steps[step]
-        import_sac_actor(step_dir / "state.safetensors", out, member=0, trained_on=trained_on,
-                         training=training(step_dir) | ({"level": level} if role == "sac-target-medium" else {}),
-                         score={"evaluation": scores[step], "run_result": None})
+        out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(actors[step], out)
+        shutil.copyfile(sidecar_path(actors[step]), sidecar_path(out))
+        training = read_sidecar(out)["training"] | ({"level": level} if role == "sac-target-medium" else {})
+        update_sidecar(out, training=training, score={"evaluation": scores[step], "run_result": None})
         written[role] = out
     return {"expert": written["sac-target"], "medium": written["sac-target-medium"], "level": level}
