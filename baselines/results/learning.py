@@ -317,25 +317,29 @@ def _returns_by_seed(evaluation: dict) -> dict[str, list[float]]:
 
 
 def claims(methods: dict) -> dict[str, dict]:
-    """The papers' claims, checked on IQM returns: DAP at least 2x RL on source, DAP+U above DAP,
-    H2O above DARC and CQL; for DAP both with the regulariser's former default (sampled actions) and
-    its current one (mean actions)."""
+    """The papers' claims (:data:`offdyn_bench.protocol.claims.PAPER_CLAIMS`), checked on IQM returns;
+    the DAP ones both with the regulariser's former default (sampled actions) and its current one
+    (mean actions)."""
+    from offdyn_bench.protocol.claims import PAPER_CLAIMS
+
     def value(name: str) -> float | None:
         return methods[name]["iqm_return"] if name in methods else None
 
+    def named(claim, suffix: str) -> tuple[str, str]:
+        return tuple(name + suffix if name.startswith("dap") else name for name in (claim.better, claim.worse))
+
+    dap_claims = [c for c in PAPER_CLAIMS if c.better.startswith("dap")]
+    other_claims = [c for c in PAPER_CLAIMS if c not in dap_claims]
     checks = {}
-    for dap_name, dap_u_name in (("dap", "dap-u"),
-                                 ("dap[regularized_actions=mean]", "dap-u[regularized_actions=mean]")):
-        source, dap_, dap_u = value("sac-source"), value(dap_name), value(dap_u_name)
-        if source is not None and dap_ is not None:
-            checks[f"{dap_name} >= 2x rl-on-source (IQM return)"] = {
-                "holds": dap_ >= 2 * source, dap_name: dap_, "sac-source": source}
-        if dap_ is not None and dap_u is not None:
-            checks[f"{dap_u_name} > {dap_name}"] = {"holds": dap_u > dap_, dap_u_name: dap_u, dap_name: dap_}
-    h2o_ = value("h2o")
-    for other in ("darc", "cql"):
-        if h2o_ is not None and value(other) is not None:
-            checks[f"h2o > {other}"] = {"holds": h2o_ > value(other), "h2o": h2o_, other: value(other)}
+    for claim, suffix in [(c, s) for s in ("", "[regularized_actions=mean]") for c in dap_claims] + \
+            [(c, "") for c in other_claims]:
+        better, worse = named(claim, suffix)
+        if value(better) is None or value(worse) is None:
+            continue
+        label = (f"{better} >= {claim.factor:g}x rl-on-source (IQM return)" if claim.factor != 1.0
+                 else f"{better} > {worse}")
+        checks[label] = {"holds": claim.verdict(value(better), value(worse)), better: value(better),
+                         worse: value(worse)}
     return checks
 
 

@@ -170,3 +170,27 @@ def score(evaluations: list[Path] = typer.Argument(..., help="evaluation.json fi
         records = [read_evaluation(path) for path in evaluations]
         report = score_report(records, budget, _parse_references(reference) if reference else None)
     typer.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.to_text())
+
+
+@protocol_app.command("claims")
+def claims(evaluations: list[Path] = typer.Argument(..., help="evaluation.json files of one budget (any methods, "
+                                                              "tasks and datasets; a sweep's per-seed records)."),
+           as_json: bool = typer.Option(False, "--json"),
+           out: Path | None = typer.Option(None, "--out", help="Also write the markdown report here.")) -> None:
+    """Check the papers' headline claims task by task: DAP at least doubles RL on source and DAP+U
+    beats DAP (DAP, Section 5.2); H2O beats DARC and CQL on the HalfCheetah H2O settings (H2O, Table 1)."""
+    from offdyn_bench.evaluate import read_evaluation
+    from offdyn_bench.protocol.claims import check_claims, claims_markdown
+
+    with exit_on_error():
+        checks = check_claims([read_evaluation(path) for path in evaluations])
+        text = claims_markdown(checks)
+        if out is not None:
+            from baselines.run_folder import write_lines_atomic
+
+            try:
+                write_lines_atomic(out, text.splitlines())
+            except OSError as error:
+                raise OffdynError(f"--out {str(out)!r}: cannot write the report ({error.strerror}); nothing was "
+                                  "written") from None
+    typer.echo(json.dumps([c.to_dict() for c in checks], indent=1) if as_json else text.rstrip("\n"))
