@@ -218,3 +218,13 @@ def test_a_track_that_is_not_text_names_all_four_tracks(tmp_path, tiny_spec, wri
     line = _refused(tmp_path, tiny_spec(tmp_path / "out", track=3))
     for track in ("offline-target", "online-target", "offline-source-offline-target", "offline-source-online-target"):
         assert track in line
+
+
+@pytest.mark.parametrize("name", ["oracle-lite.yaml", "reference-lite.yaml", "reference-lite-gpu.yaml", "tiny.json"])
+def test_every_shipped_spec_expands(name, tmp_path):
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "examples" / "sweeps" / name
+    runs = expand(load_spec(path, out=tmp_path / "out"))
+    assert runs and all(run.folder.is_relative_to(tmp_path / "out") for run in runs)
+    assert not (tmp_path / "out").exists()  # expanding writes nothing
