@@ -169,6 +169,14 @@ def record_random_reference(task: str, path: str | os.PathLike[str] | None = Non
     return score
 
 
+def portable_paths(text: str | None) -> str | None:
+    """``text`` with paths under the working directory made relative to it: the provenance is
+    committed with the reference file, where one machine's absolute layout means nothing."""
+    if text is None:
+        return None
+    return text.replace(str(pathlib.Path.cwd()) + os.sep, "")
+
+
 def record_oracle_reference(evaluations: Sequence[Mapping[str, Any]],
                             path: str | os.PathLike[str] | None = None) -> ReferenceScore:
     """Record ``sac-target`` evaluations (``evaluation.json`` contents, one per run) of one task
@@ -208,10 +216,11 @@ def record_oracle_reference(evaluations: Sequence[Mapping[str, Any]],
     provenance = {
         "method": "sac-target", "budget": budget, "seeds": sorted(s["seed"] for s in seeds),
         "episodes_per_seed": len(seeds[0]["returns"]), "episode_seeds": evaluations[0]["episode_seeds"],
-        "runs": [{"path": e["agent"].get("path"), "policy_sha256": e["agent"].get("policy_sha256"),
-                  "train_command": e.get("train_command"), "steps": e.get("steps")} for e in evaluations],
-        "command": "offdyn-bench protocol reference oracle " + " ".join(
-            str(pathlib.Path(str(e["agent"].get("path"))) / "evaluation.json") for e in evaluations),
+        "runs": [{"path": portable_paths(e["agent"].get("path")), "policy_sha256": e["agent"].get("policy_sha256"),
+                  "train_command": portable_paths(e.get("train_command")), "steps": e.get("steps")}
+                 for e in evaluations],
+        "command": portable_paths("offdyn-bench protocol reference oracle " + " ".join(
+            str(pathlib.Path(str(e["agent"].get("path"))) / "evaluation.json") for e in evaluations)),
         "versions": evaluations[0].get("versions"),
     }
     score = ReferenceScore(task, "oracle", float(np.mean(returns)), tuple(returns), provenance, budget)

@@ -145,6 +145,23 @@ def test_normalized_score_by_hand(tmp_path):
         normalized_score(1.0, "hopper-gravity-0.5", "lite", bad)
 
 
+def test_oracle_provenance_paths_are_relative_to_the_working_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    five = [_evaluation(seed=s) for s in range(5)]
+    for e in five:
+        run = tmp_path / "runs" / "sac-target" / str(e["seeds"][0]["seed"])
+        e["agent"]["path"] = str(run)
+        e["train_command"] = f"offdyn-bench train sac-target --task hopper-gravity-0.5 --out {run}"
+    elsewhere = "/data/elsewhere/run"  # a path outside the working directory stays as it is
+    five[4]["agent"]["path"] = elsewhere
+    record_oracle_reference(five, tmp_path / "refs.json")
+    provenance = reference_scores(tmp_path / "refs.json")["hopper-gravity-0.5"]["oracle/lite"].provenance
+    assert [r["path"] for r in provenance["runs"]] == [f"runs/sac-target/{s}" for s in range(4)] + [elsewhere]
+    assert provenance["runs"][0]["train_command"].endswith("--out runs/sac-target/0")
+    assert provenance["command"].startswith("offdyn-bench protocol reference oracle runs/sac-target/0/evaluation.json ")
+    assert str(tmp_path) not in json.dumps(provenance)
+
+
 def test_a_damaged_reference_file_is_a_clear_error(tmp_path):
     path = tmp_path / "refs.json"
     path.write_text('{"format": "offdyn-bench/reference-scores", "tasks": ')
@@ -169,6 +186,7 @@ def test_oracle_reference_from_evaluations(tmp_path):
     assert score.mean_return == pytest.approx(310.0)  # mean of 100..500, +10
     stored = reference_scores(path)["hopper-gravity-0.5"]["oracle/lite"]
     assert stored.provenance["seeds"] == [0, 1, 2, 3, 4] and stored.returns[:4] == (100.0, 120.0, 200.0, 220.0)
+    assert stored.provenance["runs"][0]["path"] == "runs/0"
     before = path.read_bytes()
     for evaluations, message in [
         ([_evaluation(method="dap")], "an oracle reference is sac-target"),
