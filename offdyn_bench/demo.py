@@ -145,6 +145,7 @@ def demo_training(out: pathlib.Path, steps: int, n_seeds: int) -> list[pathlib.P
 def demo_score(out: pathlib.Path, run_dirs: list[pathlib.Path]) -> None:
     from offdyn_bench.evaluate import evaluate
     from offdyn_bench.protocol import EVAL_EPISODES
+    from offdyn_bench.protocol.claims import check_claims, claims_markdown
     from offdyn_bench.protocol.references import record_random_reference
     from offdyn_bench.protocol.report import score_report
 
@@ -166,6 +167,9 @@ def demo_score(out: pathlib.Path, run_dirs: list[pathlib.Path]) -> None:
                + " ".join(str(r / "evaluation.json") for r in run_dirs[:2]) + ")")
     report = score_report(records[:2], references={DEMO_TRAINING_TASK: (random.mean_return, j_oracle)})
     typer.echo("   " + report.to_text().replace("\n", "\n   "))
+    typer.echo("   The DAP paper's claim on this task (Section 5.2), checked on the same records:")
+    typer.echo("   (offdyn-bench protocol claims " + " ".join(str(r / "evaluation.json") for r in run_dirs[:2]) + ")")
+    typer.echo("   " + claims_markdown(check_claims(records[:2])).rstrip("\n").replace("\n", "\n   "))
 
 
 def demo_leaderboard(out: pathlib.Path) -> None:

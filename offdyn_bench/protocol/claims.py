@@ -156,6 +156,10 @@ def check_claims(records: Sequence[Mapping[str, Any]],
     return checks
 
 
+def _seeds(n: int) -> str:
+    return f"{n} seed" + ("" if n == 1 else "s")
+
+
 def claims_markdown(checks: Sequence[ClaimCheck]) -> str:
     """One table per claim (task, dataset, both returns, the verdict, P(A > B)), then a tally."""
     if not checks:
@@ -171,8 +175,8 @@ def claims_markdown(checks: Sequence[ClaimCheck]) -> str:
             verdict = ("holds" if c.holds else "does not hold") if c.holds is not None else (
                 f"undefined ({claim.worse} return <= 0)")
             where = "" if c.claimed_on_task else " (not claimed here)"
-            lines.append(f"| {c.task}{where} | {c.dataset} | {c.better_return:.1f} ({c.better_seeds} seeds) | "
-                         f"{c.worse_return:.1f} ({c.worse_seeds} seeds) | {verdict} | "
+            lines.append(f"| {c.task}{where} | {c.dataset} | {c.better_return:.1f} ({_seeds(c.better_seeds)}) | "
+                         f"{c.worse_return:.1f} ({_seeds(c.worse_seeds)}) | {verdict} | "
                          f"{c.probability_of_improvement:.2f} |")
         claimed = [c for c in rows if c.claimed_on_task and c.holds is not None]
         lines += ["", f"Where the paper claims it: holds on {sum(bool(c.holds) for c in claimed)} of "

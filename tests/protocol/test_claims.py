@@ -118,7 +118,7 @@ def test_cli_writes_the_report_and_refuses_an_unwritable_path(tmp_path):
     runner = CliRunner()
     result = runner.invoke(app, ["protocol", "claims", *map(str, paths), "--out", str(tmp_path / "claims.md")])
     assert result.exit_code == 0, result.output
-    assert "| hopper-gravity-0.5 | - | 250.0 (1 seeds) | 100.0 (1 seeds) | holds | 1.00 |" in result.output
+    assert "| hopper-gravity-0.5 | - | 250.0 (1 seed) | 100.0 (1 seed) | holds | 1.00 |" in result.output
     assert (tmp_path / "claims.md").read_text().rstrip("\n") == result.output.rstrip("\n")
     as_json = json.loads(runner.invoke(app, ["protocol", "claims", *map(str, paths), "--json"]).output)
     assert as_json[0] | {"probability_of_improvement": 1.0} == as_json[0] and as_json[0]["holds"] is True
