@@ -9,10 +9,19 @@ alternating rounds so background load hits every variant alike:
 * ``graph``: the same update replayed from a CUDA graph (:class:`baselines.sac.GraphedUpdate`);
 
 each with 256x256 networks, batch 256, Hopper's sizes (11/3), random transitions, for 1 seed and
-for ``--seeds`` seeds. Without a CUDA device it says so and measures nothing (exit status 0).
+for ``--seeds`` seeds.
+
+Then the third target: whole ``train`` runs, environments and evaluation included, at least 5x
+the aggregate training steps/s of the same seeds trained one after another on the CPU.
+``--train-seeds`` seeds run together (``--n-seeds N --device cuda``) against ``--train-cpu-seeds``
+of them one after another with ``--device cpu`` and one torch thread, with the same method, task,
+steps and evaluation settings. Runs one after another have an aggregate rate equal to one run's
+(every seed costs the same steps), so a few CPU seeds measure it; ``--train-seeds 0`` skips this.
+
+Without a CUDA device it says so and measures nothing (exit status 0).
 
     .venv/bin/pip install -e ".[bench]"        # Stable-Baselines3, pinned
-    .venv/bin/python benchmarks/bench_gpu.py [--seeds 1 20] [--rounds 5] [--json out.json]
+    .venv/bin/python benchmarks/bench_gpu.py [--seeds 1 20] [--rounds 5] [--train-seeds 20] [--json out.json]
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ import argparse
 import json
 import statistics
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,6 +40,7 @@ import torch
 
 from baselines.buffers import ReplayBuffer
 from baselines.sac import GraphedUpdate, SACAgent, SACConfig, make_capturable, sac_update
+from baselines.train import train
 
 OBS_DIM, ACTION_DIM, BATCH, BUFFER = 11, 3, 256, 10_000
 
@@ -90,12 +101,42 @@ def _stable_baselines3(updates: int) -> Callable[[], float]:
     return run
 
 
+def _timed_train(out: Path, *, method: str, task: str, steps: int, random_steps: int, seed: int, n_seeds: int,
+                 device: str) -> float:
+    start = time.perf_counter()
+    train(method, task, steps=steps, out=out, seed=seed, n_seeds=n_seeds, device=device, threads=1,
+          overrides={"random_steps": str(random_steps)}, eval_every=steps, eval_episodes=2, progress=False)
+    return time.perf_counter() - start
+
+
+def bench_train(method: str, task: str, steps: int, random_steps: int, gpu_seeds: int, cpu_seeds: int) -> dict:
+    """Aggregate seed-steps/s of ``gpu_seeds`` trained together on CUDA and of ``cpu_seeds`` of
+    them trained one after another on one CPU core."""
+    common = {"method": method, "task": task, "steps": steps, "random_steps": random_steps}
+    with tempfile.TemporaryDirectory() as tmp:
+        # Warm-up: CUDA context, cuBLAS handles, the graph capture, MuJoCo model compilation.
+        _timed_train(Path(tmp) / "warm-up", seed=0, n_seeds=gpu_seeds, device="cuda",
+                     **common | {"steps": random_steps + 50})
+        gpu_s = _timed_train(Path(tmp) / "cuda", seed=0, n_seeds=gpu_seeds, device="cuda", **common)
+        cpu_s = sum(_timed_train(Path(tmp) / f"cpu-{seed}", seed=seed, n_seeds=1, device="cpu", **common)
+                    for seed in range(cpu_seeds))
+    gpu_rate, cpu_rate = gpu_seeds * steps / gpu_s, cpu_seeds * steps / cpu_s
+    return {"method": method, "task": task, "steps_per_seed": steps, "random_steps": random_steps,
+            "gpu_seeds": gpu_seeds, "cpu_seeds": cpu_seeds, "gpu_seconds": gpu_s, "cpu_seconds": cpu_s,
+            "gpu_seed_steps_per_s": gpu_rate, "cpu_seed_steps_per_s": cpu_rate, "ratio": gpu_rate / cpu_rate}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 20])
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--updates-per-round", type=int, default=500)
     parser.add_argument("--skip-sb3", action="store_true")
+    parser.add_argument("--train-seeds", type=int, default=20, help="seeds of the whole-train run on the GPU (0: skip)")
+    parser.add_argument("--train-cpu-seeds", type=int, default=2, help="of those, trained one after another on the CPU")
+    parser.add_argument("--train-steps", type=int, default=2500, help="environment steps per seed")
+    parser.add_argument("--train-random-steps", type=int, default=500, help="random steps before updates start")
+    parser.add_argument("--train-task", default="hopper-gravity-0.5")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     if not torch.cuda.is_available():
@@ -128,6 +169,13 @@ def main() -> None:
         report["rows"].append(row)
         print(f"{name:>10}: {row['updates_per_s']:9.1f} updates/s, {row['seed_updates_per_s']:10.1f} seed-updates/s"
               + (f", {row['seed_updates_vs_sb3']:.1f}x SB3" if "seed_updates_vs_sb3" in row else ""), flush=True)
+    if args.train_seeds:
+        t = bench_train("sac-target", args.train_task, args.train_steps, args.train_random_steps, args.train_seeds,
+                        args.train_cpu_seeds)
+        report["train"] = t
+        print(f"whole train runs, sac-target on {t['task']}, {t['steps_per_seed']} steps per seed: {t['gpu_seeds']} "
+              f"seeds together on CUDA {t['gpu_seed_steps_per_s']:.0f} seed-steps/s, one after another on one CPU "
+              f"core {t['cpu_seed_steps_per_s']:.0f}, ratio {t['ratio']:.1f}x", flush=True)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 
