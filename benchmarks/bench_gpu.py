@@ -13,7 +13,7 @@ for ``--seeds`` seeds.
 
 Then the third target: whole ``train`` runs, environments and evaluation included, at least 5x
 the aggregate training steps/s of the same seeds trained one after another on the CPU.
-``--train-seeds`` seeds run together (``--n-seeds N --device cuda``) against ``--train-cpu-seeds``
+``--train-seeds`` seeds run together (``--n-seeds N --device cuda --set cuda_graph=true``) against ``--train-cpu-seeds``
 of them one after another with ``--device cpu`` and one torch thread, with the same method, task,
 steps and evaluation settings. Runs one after another have an aggregate rate equal to one run's
 (every seed costs the same steps), so a few CPU seeds measure it; ``--train-seeds 0`` skips this.
@@ -103,9 +103,10 @@ def _stable_baselines3(updates: int) -> Callable[[], float]:
 
 def _timed_train(out: Path, *, method: str, task: str, steps: int, random_steps: int, seed: int, n_seeds: int,
                  device: str) -> float:
+    overrides = {"random_steps": str(random_steps)} | ({"cuda_graph": "true"} if device != "cpu" else {})
     start = time.perf_counter()
     train(method, task, steps=steps, out=out, seed=seed, n_seeds=n_seeds, device=device, threads=1,
-          overrides={"random_steps": str(random_steps)}, eval_every=steps, eval_episodes=2, progress=False)
+          overrides=overrides, eval_every=steps, eval_episodes=2, progress=False)
     return time.perf_counter() - start
 
 
