@@ -13,9 +13,9 @@ for ``--seeds`` seeds.
 
 Then the third target: whole ``train`` runs, environments and evaluation included, at least 5x
 the aggregate training steps/s of the same seeds trained one after another on the CPU.
-``--train-seeds`` seeds run together (``--n-seeds N --device cuda --set cuda_graph=true``) against ``--train-cpu-seeds``
-of them one after another with ``--device cpu`` and one torch thread, with the same method, task,
-steps and evaluation settings. Runs one after another have an aggregate rate equal to one run's
+``--train-seeds`` seeds run together (``--n-seeds N --device cuda --set cuda_graph=true``)
+against ``--train-cpu-seeds`` of them one after another with ``--device cpu`` and one torch thread,
+with the same method, task, steps and evaluation settings. Runs one after another have an aggregate rate equal to one run's
 (every seed costs the same steps), so a few CPU seeds measure it; ``--train-seeds 0`` skips this.
 
 Without a CUDA device it says so and measures nothing (exit status 0).
