@@ -437,4 +437,30 @@ def read_evaluation(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise EvaluationError(f"cannot read evaluation {str(path)!r}: {error}") from None
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         raise EvaluationError(f"{str(path)!r} is not an {FORMAT} file")
+    check_evaluation_record(record, repr(str(path)))
     return record
+
+
+def check_evaluation_record(record: Any, where: str = "an evaluation") -> None:
+    """The fields every reader of an evaluation relies on, with the types ``evaluate`` writes: a
+    clear error naming ``where`` and the first field that is wrong, instead of a crash later on."""
+    def wrong(field: str, expected: str) -> EvaluationError:
+        return EvaluationError(f"{where}: {field} is not {expected}; re-run offdyn-bench evaluate to write it")
+
+    if not isinstance(record, dict):
+        raise EvaluationError(f"{where}: not a JSON object")
+    if not isinstance(record.get("task"), str):
+        raise wrong("'task'", "a task name")
+    for field in ("method", "budget"):
+        if record.get(field) is not None and not isinstance(record[field], str):
+            raise wrong(repr(field), "a string or null")
+    seeds = record.get("seeds")
+    if not isinstance(seeds, list) or not seeds:
+        raise wrong("'seeds'", "a non-empty list of {'seed': int, 'returns': [number, ...]}")
+    for i, entry in enumerate(seeds):
+        if not isinstance(entry, dict) or type(entry.get("seed")) is not int or entry["seed"] < 0:
+            raise wrong(f"seeds[{i}].seed", "a non-negative integer")
+        returns = entry.get("returns")
+        if not isinstance(returns, list) or not returns or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) for x in returns):
+            raise wrong(f"seeds[{i}].returns", "a non-empty list of numbers")

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from offdyn_bench.evaluate import check_evaluation_record
 from offdyn_bench.protocol.definition import ProtocolError
 from offdyn_bench.protocol.scoring import seed_means
 
@@ -107,14 +108,8 @@ def _seed_returns(records: Sequence[Mapping[str, Any]]) -> dict[tuple[str, str, 
         if record.get("side", "target") != "target":
             raise ProtocolError(f"{record.get('method')} on {record.get('task')}: a source-side evaluation; the "
                                 "claims are about target returns")
-        task, entries = record.get("task"), record.get("seeds")
-        if not isinstance(task, str) or not isinstance(entries, list) or not all(
-                isinstance(e, dict) and isinstance(e.get("seed"), int) and isinstance(e.get("returns"), list)
-                for e in entries):
-            raise ProtocolError(f"an evaluation of {record.get('method')!r} has no task name or no per-seed returns "
-                                "(expected 'task' and 'seeds': [{'seed': int, 'returns': [...]}], as "
-                                "offdyn-bench evaluate writes them)")
-        key = (str(record.get("method") or "agent"), task, dataset_label(record))
+        check_evaluation_record(record, f"the evaluation of {record.get('method')!r} on {record.get('task')!r}")
+        key = (str(record.get("method") or "agent"), str(record["task"]), dataset_label(record))
         means = seed_means(record)
         known = out.setdefault(key, {})
         twice = sorted(set(means) & set(known))

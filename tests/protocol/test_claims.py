@@ -9,6 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from offdyn_bench.cli import app
+from offdyn_bench.errors import OffdynError
 from offdyn_bench.protocol import ProtocolError
 from offdyn_bench.protocol.claims import PAPER_CLAIMS, check_claims, claims_markdown
 
@@ -96,10 +97,10 @@ def test_a_sweeps_per_seed_records_merge_and_a_seed_twice_is_refused():
     ([record("dap", HOPPER, {0: [1.0]}, side="source")], "a source-side evaluation"),
     ([record("dap", HOPPER, {0: [float("nan")]})], "non-finite"),
     ([{"format": "offdyn-bench/evaluation", "method": "dap", "task": HOPPER, "seeds": [{"seed": 0}]}],
-     "no task name or no per-seed returns"),
+     r"the evaluation of 'dap' on 'hopper-gravity-0.5': seeds\[0\].returns is not a non-empty list of numbers"),
 ])
 def test_bad_records_get_a_clear_error(records, message):
-    with pytest.raises(ProtocolError, match=message):
+    with pytest.raises(OffdynError, match=message):
         check_claims(records)
 
 

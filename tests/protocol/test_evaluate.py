@@ -239,3 +239,25 @@ def test_a_matl_run_is_evaluated_with_its_robot_policy(tmp_path):
     env = gymnasium.make("offdyn/InvertedPendulum-gravity-3.0-target-v0")
     for seed, agent in load_run_agents(run).agents:
         assert episode_returns(agent, env, [1_000_000], "t") == pytest.approx(result["returns"][str(seed)], rel=1e-5)
+
+
+@pytest.mark.parametrize("record, message", [
+    ({"format": "offdyn-bench/evaluation"}, "'task' is not a task name"),
+    ({"format": "offdyn-bench/evaluation", "task": "hopper-gravity-0.5", "method": 3, "seeds": []},
+     "'method' is not a string or null"),
+    ({"format": "offdyn-bench/evaluation", "task": "hopper-gravity-0.5", "seeds": {}}, "'seeds' is not a non-empty list"),
+    ({"format": "offdyn-bench/evaluation", "task": "hopper-gravity-0.5", "seeds": [{"seed": -1, "returns": [1.0]}]},
+     r"seeds\[0\].seed is not a non-negative integer"),
+    ({"format": "offdyn-bench/evaluation", "task": "hopper-gravity-0.5", "seeds": [{"seed": 0, "returns": ["1"]}]},
+     r"seeds\[0\].returns is not a non-empty list of numbers"),
+    ({"format": "offdyn-bench/evaluation", "task": "hopper-gravity-0.5", "seeds": [{"seed": True, "returns": [1]}]},
+     r"seeds\[0\].seed is not a non-negative integer"),
+])
+def test_a_malformed_evaluation_is_a_clear_error_for_every_reader(tmp_path, record, message):
+    path = tmp_path / "evaluation.json"
+    path.write_text(json.dumps(record))
+    with pytest.raises(EvaluationError, match=message):
+        read_evaluation(path)
+    for command in (["protocol", "score"], ["protocol", "claims"], ["protocol", "reference", "oracle"]):
+        result = CliRunner().invoke(app, [*command, str(path)])
+        assert result.exit_code == 2 and "error: " in result.output and "Traceback" not in result.output, result.output
