@@ -16,6 +16,7 @@ from pathlib import Path
 
 from leaderboard.scores import Board, Entry, Interval, Normalization, performance_profile
 from leaderboard.store import write_file_atomic
+from offdyn_bench.errors import OffdynError
 
 
 def _number(value: float, digits: int = 1) -> str:
@@ -358,7 +359,11 @@ def build_site(store: Path, out: Path, *, references: Path | None = None) -> tup
 
     board = score_board(load_store(store), references=references)
     markdown, page = render_markdown(board), render_html(board)
-    out.mkdir(parents=True, exist_ok=True)
-    write_file_atomic(out / "leaderboard.md", markdown.encode())
-    write_file_atomic(out / "index.html", page.encode())
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_file_atomic(out / "leaderboard.md", markdown.encode())
+        write_file_atomic(out / "index.html", page.encode())
+    except OSError as error:
+        raise OffdynError(f"--out {str(out)!r}: cannot write the leaderboard there ({error.strerror or error}); "
+                          "expected a folder this user can create and write") from None
     return out / "leaderboard.md", out / "index.html"

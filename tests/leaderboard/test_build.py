@@ -158,3 +158,13 @@ def test_build_command(store: Path, references_file: Path, tmp_path: Path) -> No
     assert result.exit_code == 2
     assert "error:" in result.output and "broken.json: not valid JSON" in result.output
     assert not (tmp_path / "other").exists()
+
+
+def test_build_into_an_unwritable_place_is_a_clear_error(store: Path, references_file: Path, tmp_path: Path) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    result = CliRunner().invoke(leaderboard_app, ["build", "--store", str(store), "--out", str(blocker / "site"),
+                                                  "--references", str(references_file)])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert f"--out '{blocker / 'site'}': cannot write the leaderboard there" in result.output
+    assert blocker.read_text() == "not a folder"
