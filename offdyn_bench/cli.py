@@ -131,8 +131,10 @@ def demo(task: str = typer.Option("hopper-gravity-0.5", help="the pair to roll o
     """Run the suite end to end on an embedded default (no external service): task grid, a pair's
     divergence, a target dataset, a gap diagnosis, a short training run and its score."""
     from offdyn_bench.demo import run_demo
+    from offdyn_bench.errors import exit_on_error
 
-    run_demo(task=task, seed=seed, out=out, training_steps=training_steps, n_seeds=n_seeds)
+    with exit_on_error():
+        run_demo(task=task, seed=seed, out=out, training_steps=training_steps, n_seeds=n_seeds)
 
 
 def main(args: Any = None) -> None:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import typer
 
+from offdyn_bench.errors import OffdynError
 from offdyn_bench.task_commands import grid_summary
 from offdyn_bench.tasks import get_task
 
@@ -182,8 +183,23 @@ def demo_leaderboard(out: pathlib.Path) -> None:
     typer.echo(f"   wrote {', '.join(str(p) for p in written)}")
 
 
+def check_demo_arguments(task: str, out: pathlib.Path, training_steps: int, n_seeds: int) -> None:
+    """Everything the demo's later steps would refuse, refused before its first step."""
+    get_task(task)
+    if training_steps < 0:
+        raise OffdynError(f"--training-steps {training_steps}: expected 0 (no training) or more")
+    if training_steps > 0 and n_seeds < 1:
+        raise OffdynError(f"--n-seeds {n_seeds}: expected 1 or more")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise OffdynError(f"--out {str(out)!r}: cannot create the demo's folder ({error.strerror or error}); "
+                          "expected a folder this user can write") from None
+
+
 def run_demo(task: str = "hopper-gravity-0.5", seed: int = 0, out: pathlib.Path = pathlib.Path("demo-out"),
              training_steps: int = 12_000, n_seeds: int = 3) -> None:
+    check_demo_arguments(task, out, training_steps, n_seeds)
     typer.echo("== 1. The task grid (robot x shift family: number of pairs)")
     typer.echo("   (offdyn-bench tasks list)")
     typer.echo(grid_summary())
@@ -202,7 +218,6 @@ def run_demo(task: str = "hopper-gravity-0.5", seed: int = 0, out: pathlib.Path 
                f"(episode length {result.source_length}), target {result.target_return:.1f} "
                f"(episode length {result.target_length})")
 
-    out.mkdir(parents=True, exist_ok=True)
     dataset = demo_dataset(out)
     demo_diagnosis(dataset, out)
     if training_steps > 0:

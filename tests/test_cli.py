@@ -96,3 +96,32 @@ def test_help_does_not_even_load_mujoco():
         assert "mujoco" not in sys.modules, "help imported mujoco"
     """
     _modules_after(code)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--n-seeds", "0"], "--n-seeds 0: expected 1 or more"),
+    (["--training-steps", "-1"], "--training-steps -1: expected 0 \\(no training\\) or more"),
+    (["--task", "hopper-gravity-9"], "unknown task 'hopper-gravity-9'"),
+    (["--out", "{blocked}/demo"], "--out '.*/a-file/demo': cannot create the demo's folder"),
+])
+def test_demo_refuses_bad_arguments_before_its_first_step(tmp_path, args, message):
+    import re
+
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    args = [a.replace("{blocked}", str(blocked)) for a in args]
+    out = ["--out", str(tmp_path / "demo-out")] if "--out" not in args else []
+    result = runner.invoke(app, ["demo", *args, *out])
+    assert result.exit_code == 2 and re.search("error: " + message, result.output), result.output
+    assert "The task grid" not in result.output  # nothing ran
+    assert not (tmp_path / "demo-out").exists()
+
+
+def test_datasets_build_refuses_an_out_folder_it_cannot_create_before_building(tmp_path):
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    result = runner.invoke(app, ["datasets", "build", "offdyn/hopper-gravity-0p5/random-v0", "--no-install",
+                                 "--out", str(blocked / "remote")])
+    assert result.exit_code == 2, result.output
+    assert f"error: --out '{blocked / 'remote'}': cannot create it" in result.output
+    assert "transitions in" not in result.output  # refused before the build, not after it

@@ -78,6 +78,12 @@ def build_command(
         targets = sorted(manifest.entries) if all_ else list(ids or [])
         if not targets:
             raise OffdynError("name at least one dataset id, or pass --all; see `offdyn-bench datasets list`")
+        if out is not None:
+            try:  # before any build: a build takes minutes, and its archive goes here last
+                out.mkdir(parents=True, exist_ok=True)
+            except OSError as error:
+                raise OffdynError(f"--out {str(out)!r}: cannot create it ({error.strerror or error}); expected a "
+                                  "folder this user can write") from None
         failed: list[str] = []
         for ident in targets:
             entry = manifest.entry_or_default(ident)
