@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from offdyn_bench.errors import exit_on_error
+from offdyn_bench.errors import OffdynError, exit_on_error
 
 leaderboard_app = typer.Typer(no_args_is_help=True, add_completion=False,
                               help="Leaderboard: assemble and validate submissions, render the board, serve it.")
@@ -101,6 +101,10 @@ def serve_command(
 ) -> None:
     """Serve the board at / and accept POST /submissions from token holders."""
     with exit_on_error():
+        if not 0 <= port <= 65535:
+            raise OffdynError(f"--port {port}: expected a TCP port in [0, 65535]")
+        if max_body_bytes is not None and max_body_bytes < 1:
+            raise OffdynError(f"--max-body-bytes {max_body_bytes}: expected a positive number of bytes")
         import uvicorn
 
         from leaderboard.server import create_app

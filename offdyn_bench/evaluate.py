@@ -201,7 +201,11 @@ def load_factory_agents(spec: str, task: str, seeds: Sequence[int]) -> LoadedAge
     agents: list[tuple[int, Agent]] = []
     for seed in seeds:
         kwargs = {k: v for k, v in (("task", task), ("seed", int(seed))) if k in accepted}
-        agent = factory(**kwargs)
+        try:
+            agent = factory(**kwargs)
+        except Exception as error:  # the user's code: its failure is reported, not a traceback of ours
+            raise EvaluationError(f"--agent {spec!r}: the factory failed for training seed {seed} with "
+                                  f"{type(error).__name__}: {error}") from error
         if not isinstance(agent, Agent):
             if not callable(agent):
                 raise EvaluationError(f"--agent {spec!r}: the factory returned {type(agent).__name__}, which has "
@@ -332,6 +336,13 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
 
     if not 1 <= episodes <= len(EPISODE_SEEDS) * 50:
         raise EvaluationError(f"episodes={episodes}; expected an integer in [1, {len(EPISODE_SEEDS) * 50}]")
+    if side not in ("source", "target"):
+        raise EvaluationError(f"side {side!r}; expected 'target' (the protocol) or 'source' (the gap)")
+    # Named options are checked before any agent is loaded (a factory may be slow or have effects).
+    if track is not None:
+        get_track(track)
+    if budget is not None:
+        get_budget(budget)
     agent_path = pathlib.Path(agent)
     is_run = agent_path.is_dir()
     if is_run:
@@ -353,8 +364,6 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
             raise EvaluationError(f"--method {method!r} contradicts the run's algorithm {loaded.method!r}")
         loaded.method = method
     assert task is not None
-    if side not in ("source", "target"):
-        raise EvaluationError(f"side {side!r}; expected 'target' (the protocol) or 'source' (the gap)")
     track, budget, notes = _conformance(loaded, task, track, budget, episodes)
     if side == "source":
         notes.append("evaluated in the source, not the target (the source-target gap)")

@@ -168,3 +168,14 @@ def test_build_into_an_unwritable_place_is_a_clear_error(store: Path, references
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert f"--out '{blocker / 'site'}': cannot write the leaderboard there" in result.output
     assert blocker.read_text() == "not a folder"
+
+
+@pytest.mark.parametrize("args, message", [(["--port", "99999"], "--port 99999: expected a TCP port in \\[0, 65535\\]"),
+                                           (["--max-body-bytes", "0"], "--max-body-bytes 0: expected a positive")])
+def test_serve_refuses_bad_options_before_opening_anything(tmp_path: Path, args: list[str], message: str) -> None:
+    import re
+
+    db = tmp_path / "board.sqlite3"
+    result = CliRunner().invoke(leaderboard_app, ["serve", "--db", f"sqlite:///{db}", *args])
+    assert result.exit_code == 2 and re.search("error: " + message, result.output), result.output
+    assert not db.exists()

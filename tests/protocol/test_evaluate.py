@@ -261,3 +261,19 @@ def test_a_malformed_evaluation_is_a_clear_error_for_every_reader(tmp_path, reco
     for command in (["protocol", "score"], ["protocol", "claims"], ["protocol", "reference", "oracle"]):
         result = CliRunner().invoke(app, [*command, str(path)])
         assert result.exit_code == 2 and "error: " in result.output and "Traceback" not in result.output, result.output
+
+
+def test_a_failing_factory_and_bad_options_are_clear_errors(tmp_path):
+    (tmp_path / "failing_agents.py").write_text("def make(task, seed):\n    raise RuntimeError('no weights for ' + task)\n")
+    sys.path.insert(0, str(tmp_path))
+    try:
+        with pytest.raises(EvaluationError, match="--agent 'failing_agents:make': the factory failed for training seed "
+                                                  "0 with RuntimeError: no weights for hopper-gravity-0.5"):
+            evaluate("failing_agents:make", "hopper-gravity-0.5", seeds=[0], progress=False)
+        # A wrong option is refused before the factory is called at all.
+        for options, message in [({"side": "sideways"}, "side 'sideways'"), ({"budget": "huge"}, "unknown budget"),
+                                 ({"track": "nowhere"}, "unknown track")]:
+            with pytest.raises(OffdynError, match=message):
+                evaluate("failing_agents:make", "hopper-gravity-0.5", seeds=[0], progress=False, **options)
+    finally:
+        sys.path.remove(str(tmp_path))
