@@ -104,11 +104,12 @@ def dataset_label(record: Mapping[str, Any]) -> str:
 def _seed_returns(records: Sequence[Mapping[str, Any]]) -> dict[tuple[str, str, str], dict[int, float]]:
     """(method, task, dataset) -> training seed -> mean target return; a seed twice is refused."""
     out: dict[tuple[str, str, str], dict[int, float]] = {}
-    for record in records:
+    for i, record in enumerate(records):
+        check_evaluation_record(record, f"evaluation {i + 1}" if not isinstance(record, Mapping) else
+                                f"the evaluation of {record.get('method')!r} on {record.get('task')!r}")
         if record.get("side", "target") != "target":
             raise ProtocolError(f"{record.get('method')} on {record.get('task')}: a source-side evaluation; the "
                                 "claims are about target returns")
-        check_evaluation_record(record, f"the evaluation of {record.get('method')!r} on {record.get('task')!r}")
         key = (str(record.get("method") or "agent"), str(record["task"]), dataset_label(record))
         means = seed_means(record)
         known = out.setdefault(key, {})
@@ -127,10 +128,10 @@ def check_claims(records: Sequence[Mapping[str, Any]],
 
     if not records:
         raise ProtocolError("no evaluations to check the claims on")
+    returns = _seed_returns(records)
     budgets = sorted({str(r.get("budget")) for r in records})
     if len(budgets) > 1:
         raise ProtocolError(f"the evaluations mix budgets {budgets}; check one budget at a time")
-    returns = _seed_returns(records)
     checks = []
     for task in sorted({task for _, task, _ in returns}):
         datasets = sorted({d for _, t, d in returns if t == task and d != NO_DATASET}) or [NO_DATASET]

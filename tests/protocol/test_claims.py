@@ -96,6 +96,7 @@ def test_a_sweeps_per_seed_records_merge_and_a_seed_twice_is_refused():
      r"mix budgets \['full', 'lite'\]"),
     ([record("dap", HOPPER, {0: [1.0]}, side="source")], "a source-side evaluation"),
     ([record("dap", HOPPER, {0: [float("nan")]})], "non-finite"),
+    ([["not", "a", "record"]], "evaluation 1: not a JSON object"),
     ([{"format": "offdyn-bench/evaluation", "method": "dap", "task": HOPPER, "seeds": [{"seed": 0}]}],
      r"the evaluation of 'dap' on 'hopper-gravity-0.5': seeds\[0\].returns is not a non-empty list of numbers"),
 ])
