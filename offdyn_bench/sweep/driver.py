@@ -330,6 +330,12 @@ def summary_lines(report: SweepReport) -> list[str]:
     for run in report.failed:
         record = report.records[run.run_id]
         lines.append(f"failed: {run.run_id} after {record.attempts} attempt(s): {record.error} (log: {run.log})")
+    evaluated = {run.method for run in report.runs if report.records[run.run_id].status == "done"}
+    if len(evaluated) > 1:
+        from offdyn_bench.sweep.runs import EVALUATION_FILE, RUNS_DIR
+
+        pattern = report.spec.out / RUNS_DIR / "*" / "*" / "*" / EVALUATION_FILE
+        lines.append(f"the papers' claims on what is done: offdyn-bench protocol claims {pattern}")
     for method in report.spec.methods:
         if method not in report.submissions:
             lines.append(f"{method}: not every run finished; no merged evaluations yet")

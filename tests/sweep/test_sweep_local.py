@@ -51,6 +51,19 @@ def test_a_tiny_sweep_trains_and_evaluates_every_run(finished_sweep):
     text = "\n".join(summary_lines(report))
     assert "2/2 runs done, 0 failed" in text and "not a leaderboard submission" in text
     assert "not at a protocol budget" in text and "not the protocol's core suite" in text
+    assert "protocol claims" not in text  # one method: no claim compares anything
+
+
+def test_the_summary_names_the_claims_command_once_two_methods_are_done(finished_sweep):
+    import dataclasses
+
+    report = finished_sweep
+    other = dataclasses.replace(report.runs[1], method="dap")  # as if a second method had finished
+    both = dataclasses.replace(report, runs=[report.runs[0], other],
+                               records={report.runs[0].run_id: report.records[report.runs[0].run_id],
+                                        other.run_id: report.records[report.runs[1].run_id]})
+    [line] = [line for line in summary_lines(both) if "protocol claims" in line]
+    assert line.endswith(f"offdyn-bench protocol claims {report.spec.out}/runs/*/*/*/evaluation.json")
 
 
 def test_running_the_same_sweep_again_launches_nothing(finished_sweep, monkeypatch):
