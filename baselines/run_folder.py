@@ -124,12 +124,19 @@ def read_metrics(out: Path, resume_step: int) -> tuple[list[str], list[str]]:
 
 
 def write_lines_atomic(path: Path, lines: list[str]) -> None:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text("".join(line + "\n" for line in lines))
-    os.replace(partial, path)
+    _write_text_atomic(path, "".join(line + "\n" for line in lines))
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
+    _write_text_atomic(path, json.dumps(data, indent=1))
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    """The old file or the new one, never part of one; a failed write leaves no partial file."""
     partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(data, indent=1))
-    os.replace(partial, path)
+    try:
+        partial.write_text(text)
+        os.replace(partial, path)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise

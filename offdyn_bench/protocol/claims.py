@@ -28,7 +28,7 @@ import numpy as np
 
 from offdyn_bench.evaluate import check_evaluation_record
 from offdyn_bench.protocol.definition import ProtocolError
-from offdyn_bench.protocol.scoring import seed_means
+from offdyn_bench.protocol.scoring import merge_seed_means
 
 NO_DATASET = "-"
 """The dataset label of a method that trains on no target data."""
@@ -111,13 +111,7 @@ def _seed_returns(records: Sequence[Mapping[str, Any]]) -> dict[tuple[str, str, 
             raise ProtocolError(f"{record.get('method')} on {record.get('task')}: a source-side evaluation; the "
                                 "claims are about target returns")
         key = (str(record.get("method") or "agent"), str(record["task"]), dataset_label(record))
-        means = seed_means(record)
-        known = out.setdefault(key, {})
-        twice = sorted(set(means) & set(known))
-        if twice:
-            raise ProtocolError(f"{key[0]}: training seed(s) {twice} of task {key[1]!r} (dataset {key[2]}) are in "
-                                "two evaluations; pass each seed's evaluation once")
-        known.update(means)
+        merge_seed_means(out.setdefault(key, {}), record, key[0], f"of task {key[1]!r} (dataset {key[2]})")
     return out
 
 

@@ -42,6 +42,17 @@ def seed_means(record: Mapping[str, Any]) -> dict[int, float]:
     return out
 
 
+def merge_seed_means(into: dict[int, float], record: Mapping[str, Any], method: str, where: str) -> None:
+    """Add ``record``'s per-seed mean returns to ``into`` (one method, task, ...: ``where``): a
+    task's seeds may come in several records, but a seed already there is refused."""
+    means = seed_means(record)
+    twice = sorted(set(means) & set(into))
+    if twice:
+        raise ProtocolError(f"{method}: training seed(s) {twice} {where} are in two evaluations; pass each "
+                            "seed's evaluation once")
+    into.update(means)
+
+
 def method_scores(method: str, records: Iterable[Mapping[str, Any]], budget: str | None,
                   tasks: Sequence[str] | None = None,
                   reference_file: str | None = None,
@@ -52,13 +63,7 @@ def method_scores(method: str, records: Iterable[Mapping[str, Any]], budget: str
     folder per seed, as a sweep makes them); a seed in two of them is refused."""
     by_task: dict[str, dict[int, float]] = {}
     for record in records:
-        means = seed_means(record)
-        known = by_task.setdefault(record["task"], {})
-        twice = sorted(set(means) & set(known))
-        if twice:
-            raise ProtocolError(f"{method}: training seed(s) {twice} of task {record['task']!r} are in two "
-                                "evaluations; pass each seed's evaluation once")
-        known.update(means)
+        merge_seed_means(by_task.setdefault(record["task"], {}), record, method, f"of task {record['task']!r}")
     tasks = tuple(tasks) if tasks is not None else tuple(sorted(by_task))
     absent = [t for t in tasks if t not in by_task]
     if absent:

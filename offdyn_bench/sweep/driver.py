@@ -26,7 +26,15 @@ from baselines.run_folder import exclusive_folder_lock, write_json_atomic
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, default_workers
 from offdyn_bench.sweep.execute import AttemptOutcome
-from offdyn_bench.sweep.runs import Run, expand, finished_evaluation, official_datasets, settings_conflict
+from offdyn_bench.sweep.runs import (
+    EVALUATION_FILE,
+    RUNS_DIR,
+    Run,
+    expand,
+    finished_evaluation,
+    official_datasets,
+    settings_conflict,
+)
 from offdyn_bench.sweep.spec import SpecError, SweepSpec
 
 STATE_FILE = "sweep.json"
@@ -332,8 +340,6 @@ def summary_lines(report: SweepReport) -> list[str]:
         lines.append(f"failed: {run.run_id} after {record.attempts} attempt(s): {record.error} (log: {run.log})")
     evaluated = {run.method for run in report.runs if report.records[run.run_id].status == "done"}
     if len(evaluated) > 1:
-        from offdyn_bench.sweep.runs import EVALUATION_FILE, RUNS_DIR
-
         pattern = report.spec.out / RUNS_DIR / "*" / "*" / "*" / EVALUATION_FILE
         lines.append(f"the papers' claims on what is done: offdyn-bench protocol claims {pattern}")
     for method in report.spec.methods:

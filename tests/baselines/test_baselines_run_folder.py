@@ -15,7 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from baselines.checkpoint import CHECKSUMS_FILE, STATE_FILE, TRAINER_FILE, checkpoints, latest_checkpoint
-from baselines.run_folder import run_folder_lock
+from baselines.run_folder import run_folder_lock, write_json_atomic, write_lines_atomic
 from baselines.train import train
 from offdyn_bench.cli import app
 from offdyn_bench.errors import OffdynError, UnknownNameError
@@ -290,3 +290,18 @@ def test_two_concurrent_cli_runs_on_one_folder_give_one_run(tmp_path, pendulum_d
     assert first.wait(timeout=600) == 0
     assert second.returncode == 2 and "in use by another training process" in second.stderr
     assert [c["step"] for c in _curve(tmp_path / "run")] == list(range(15, 301, 15))
+
+
+def test_a_failed_atomic_write_keeps_the_old_file_and_leaves_no_partial(tmp_path, monkeypatch):
+    path = tmp_path / "state.json"
+    write_json_atomic(path, {"old": True})
+
+    def broken_replace(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", broken_replace)
+    for write in (lambda: write_json_atomic(path, {"new": True}), lambda: write_lines_atomic(path, ["new"])):
+        with pytest.raises(OSError, match="No space left"):
+            write()
+        assert path.read_text() == '{\n "old": true\n}'
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json"]
