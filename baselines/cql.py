@@ -31,7 +31,7 @@ import torch
 
 from baselines.buffers import DatasetSampler
 from baselines.limits import NON_NEGATIVE, Limit, integer
-from baselines.method import MethodContext, deploy_actions, require_target_data
+from baselines.method import MethodContext, OfflineActing, require_target_data
 from baselines.sac import (Batch, ExtraCriticLoss, Metrics, QFunction, SACAgent, SACConfig, sac_update,
                            seed_generator)
 
@@ -54,7 +54,8 @@ class Config:
     LIMITS: ClassVar[dict[str, Limit]] = {"min_q_weight": NON_NEGATIVE, "n_action_samples": integer(1)}
 
 
-class CQL:
+class CQL(OfflineActing):
+    name = "CQL"
     interaction = "none"
     target_step_every = None
 
@@ -64,17 +65,6 @@ class CQL:
         self.data = DatasetSampler(require_target_data(context, "cql"), len(context.seeds), context.stream("target"),
                                    context.device)
         self.uniform_generator = seed_generator(context.stream("cql-uniform"), context.device)
-
-    def explore(self, observations, step):
-        raise RuntimeError("CQL is offline: it takes no environment steps")
-
-    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return deploy_actions(self.agent, observations)
-
-    def record(self, *transition) -> None:
-        raise RuntimeError("CQL is offline: it takes no environment steps")
-
-    record_target = record
 
     def conservative_penalty(self, batch: Batch) -> ExtraCriticLoss:
         """The CQL(H) penalty on ``batch``: the ``3 n`` sampled actions per state (uniform, policy at

@@ -47,7 +47,7 @@ from baselines.classifiers import ClassifierConfig, DomainClassifiers
 from baselines.limits import FINITE, Limit, integer
 from baselines.method import (
     MethodContext,
-    deploy_actions,
+    OfflineActing,
     require_source_data,
     require_target_data,
 )
@@ -81,7 +81,8 @@ class Config:
         return []
 
 
-class DARA:
+class DARA(OfflineActing):
+    name = "DARA"
     interaction = "none"
     target_step_every = None
 
@@ -100,17 +101,6 @@ class DARA:
         seeds = len(context.seeds)
         self.classifier_source = DatasetSampler(source, seeds, context.stream("dara-source"), context.device)
         self.classifier_target = DatasetSampler(target, seeds, context.stream("dara-target"), context.device)
-
-    def explore(self, observations, step):
-        raise RuntimeError("DARA is offline: it takes no environment steps")
-
-    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return deploy_actions(self.agent, observations)
-
-    def record(self, *transition) -> None:
-        raise RuntimeError("DARA is offline: it takes no environment steps")
-
-    record_target = record
 
     def reward_correction(self, batch: Batch, from_source: torch.Tensor) -> torch.Tensor:
         """``-eta * dr`` on the source rows of ``batch`` (``from_source``, ``[S, B]`` bool), 0 on the

@@ -43,7 +43,7 @@ import torch
 from baselines.buffers import DatasetSampler, ReplayBuffer
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
 from baselines.limits import FINITE, Limit, integer, one_of
-from baselines.method import MethodContext, deploy_actions, explore_actions, require_target_data
+from baselines.method import MethodContext, SACActing, require_target_data
 from baselines.sac import Batch, Metrics, SACAgent, SACConfig, sac_update
 
 
@@ -94,7 +94,7 @@ def h2o_variant_config(target_data: Literal["offline", "online"] = "offline") ->
     return Config(sac=SACConfig(), classifier=ClassifierConfig(), warmup_steps=10_000, target_data=target_data)
 
 
-class DARC:
+class DARC(SACActing):
     interaction = "source"
 
     def __init__(self, config: Config, context: MethodContext) -> None:
@@ -115,16 +115,6 @@ class DARC:
                                          context.stream("target"), device)
         else:
             raise ValueError(f"darc: target_data must be 'offline' or 'online', got {config.target_data!r}")
-
-    def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        actions = explore_actions(self.agent, observations, step, self.config.random_steps)
-        return actions, actions
-
-    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return deploy_actions(self.agent, observations)
-
-    def record(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
-        self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)
 
     def record_target(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
         assert isinstance(self.target, ReplayBuffer)

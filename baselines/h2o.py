@@ -39,7 +39,7 @@ import torch
 from baselines.buffers import DatasetSampler, ReplayBuffer, concat_batches
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
 from baselines.limits import NON_NEGATIVE, Limit, integer, ordered_pair
-from baselines.method import MethodContext, deploy_actions, explore_actions, require_target_data
+from baselines.method import MethodContext, SACActing, require_target_data
 from baselines.sac import Batch, Metrics, QFunction, SACAgent, SACConfig, sac_update, seed_generator
 
 TD_LOSS_WEIGHT = 1.0
@@ -155,7 +155,7 @@ class DynamicsAwareCritic:
         self.kl_generator.set_state(state["kl_generator"])
 
 
-class H2O:
+class H2O(SACActing):
     interaction = "source"
     target_step_every = None
 
@@ -170,16 +170,6 @@ class H2O:
         self.real = DatasetSampler(data, len(context.seeds), context.stream("target"), device)
         self.critic = DynamicsAwareCritic(config, context, data.observations)
         self.classifiers, self.kl_generator = self.critic.classifiers, self.critic.kl_generator
-
-    def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        actions = explore_actions(self.agent, observations, step, self.config.random_steps)
-        return actions, actions
-
-    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return deploy_actions(self.agent, observations)
-
-    def record(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
-        self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)
 
     def record_target(self, *transition) -> None:
         raise RuntimeError("H2O uses the fixed target dataset, not online target transitions")

@@ -7,11 +7,14 @@ its networks and buffers. All tensors are ``[seeds, ...]`` and actions are in [-
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal, Protocol
+from typing import TYPE_CHECKING, ClassVar, Literal, Protocol
 
 import torch
 
 from baselines.sac import Batch, Metrics, SACAgent
+
+if TYPE_CHECKING:
+    from baselines.buffers import ReplayBuffer
 
 Interaction = Literal["source", "target", "none"]
 
@@ -91,6 +94,50 @@ def explore_actions(agent: SACAgent, observations: torch.Tensor, step: int, rand
 def deploy_actions(agent: SACAgent, observations: torch.Tensor) -> torch.Tensor:
     """The deterministic policy action, ``tanh(mean)``."""
     return agent.mean_actions(observations[:, None])[:, 0]
+
+
+class SACActing:
+    """Acting of a method with one SAC agent that keeps every transition of the environment it
+    steps in ``self.buffer`` (SAC, DARC, H2O): SAC exploration, the deterministic policy deployed."""
+
+    agent: SACAgent
+    buffer: ReplayBuffer
+    config: _RandomStepsConfig
+
+    def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        actions = explore_actions(self.agent, observations, step, self.config.random_steps)
+        return actions, actions
+
+    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
+        return deploy_actions(self.agent, observations)
+
+    def record(self, observations: torch.Tensor, stored_actions: torch.Tensor, rewards: torch.Tensor,
+               next_observations: torch.Tensor, terminations: torch.Tensor) -> None:
+        self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)
+
+
+class OfflineActing:
+    """Acting of a method that steps no environment (CQL, DARA): it only deploys its SAC agent, and
+    the loop asking it to explore or record is a bug, said with the method's name."""
+
+    name: ClassVar[str]
+    agent: SACAgent
+
+    def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        raise RuntimeError(f"{self.name} is offline: it takes no environment steps")
+
+    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
+        return deploy_actions(self.agent, observations)
+
+    def record(self, *transition: torch.Tensor) -> None:
+        raise RuntimeError(f"{self.name} is offline: it takes no environment steps")
+
+    def record_target(self, *transition: torch.Tensor) -> None:
+        self.record(*transition)
+
+
+class _RandomStepsConfig(Protocol):
+    random_steps: int
 
 
 def require_target_data(context: MethodContext, algo: str) -> Batch:

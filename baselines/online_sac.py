@@ -17,7 +17,7 @@ import torch
 
 from baselines.buffers import ReplayBuffer
 from baselines.limits import Limit, integer
-from baselines.method import Interaction, MethodContext, deploy_actions, explore_actions
+from baselines.method import Interaction, MethodContext, SACActing
 from baselines.sac import GraphedUpdate, Metrics, SACAgent, SACConfig, make_capturable, sac_update
 from offdyn_bench.errors import OffdynError
 
@@ -37,7 +37,7 @@ class Config:
     LIMITS: ClassVar[dict[str, Limit]] = {"buffer_size": integer(1), "random_steps": integer(0)}
 
 
-class OnlineSAC:
+class OnlineSAC(SACActing):
     target_step_every = None
 
     def __init__(self, config: Config, context: MethodContext, interaction: Interaction) -> None:
@@ -50,16 +50,6 @@ class OnlineSAC:
         self.graphed: GraphedUpdate | None = None
         if config.cuda_graph:
             make_capturable(self.agent)
-
-    def explore(self, observations: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        actions = explore_actions(self.agent, observations, step, self.config.random_steps)
-        return actions, actions
-
-    def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return deploy_actions(self.agent, observations)
-
-    def record(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
-        self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)
 
     def record_target(self, *transition) -> None:
         raise RuntimeError("plain SAC takes no online target transitions")

@@ -170,3 +170,40 @@ def test_dap_deploys_the_target_action(algo):
     env_action, stored = method.explore(obs, step=10**9)
     assert env_action.shape == (1, 1) and stored.shape == (1, 2) and torch.equal(env_action, stored[:, :1])
     assert np.isfinite(stored.numpy()).all()
+
+
+@pytest.mark.parametrize("algo", ["sac-source", "darc", "h2o"])
+def test_sac_family_explores_uniformly_then_with_the_policy_and_records_into_its_buffer(algo):
+    from baselines.algorithms import get_algorithm
+
+    context = MethodContext(observation_dim=4, action_dim=2, seeds=(0, 1), target_data=_dataset(action_dim=2))
+    method = get_algorithm(algo).build(get_algorithm(algo).default_config(), context)
+    obs = torch.randn(2, 4)
+    early, stored = method.explore(obs, step=0)
+    assert early is stored and early.shape == (2, 2) and bool((early.abs() <= 1).all())
+    late, _ = method.explore(obs, step=method.config.random_steps)
+    # After the uniform phase the action is a policy sample around the deterministic action.
+    assert late.shape == (2, 2) and not torch.equal(late, early)
+    assert torch.equal(method.deploy(obs), method.agent.mean_actions(obs[:, None])[:, 0])
+    assert method.buffer.size == 0
+    method.record(obs, early, torch.ones(2), obs + 1, torch.zeros(2))
+    assert method.buffer.size == 1
+    stored_transition = method.buffer.sample(1)
+    assert torch.equal(stored_transition.observations[:, 0], obs)
+    assert torch.equal(stored_transition.next_observations[:, 0], obs + 1)
+
+
+@pytest.mark.parametrize("algo, name", [("cql", "CQL"), ("dara", "DARA")])
+def test_offline_methods_refuse_to_explore_or_record_naming_themselves(algo, name):
+    from baselines.algorithms import get_algorithm
+
+    context = MethodContext(observation_dim=4, action_dim=2, seeds=(0,), target_data=_dataset(action_dim=2),
+                            source_data=_dataset(action_dim=2))
+    method = get_algorithm(algo).build(get_algorithm(algo).default_config(), context)
+    obs = torch.randn(1, 4)
+    assert torch.equal(method.deploy(obs), method.agent.mean_actions(obs[:, None])[:, 0])
+    transition = (obs, torch.zeros(1, 2), torch.ones(1), obs, torch.zeros(1))
+    for call in (lambda: method.explore(obs, 0), lambda: method.record(*transition),
+                 lambda: method.record_target(*transition)):
+        with pytest.raises(RuntimeError, match=f"^{name} is offline: it takes no environment steps$"):
+            call()
