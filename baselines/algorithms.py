@@ -172,9 +172,3 @@ def config_overrides(data: Mapping[str, Any]) -> dict[str, str]:
 
     walk("", dict(data))
     return flat
-
-
-def config_from_dict(algo: str, data: Mapping[str, Any]) -> Any:
-    """Rebuild a config from :func:`config_to_dict` output (used when loading a trained policy)."""
-    return apply_overrides(get_algorithm(algo).default_config(), config_overrides(data), algo)
-
