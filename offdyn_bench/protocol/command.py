@@ -8,10 +8,14 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from offdyn_bench.errors import OffdynError, exit_on_error
+
+if TYPE_CHECKING:
+    from offdyn_bench.protocol.references import ReferenceScore
 
 protocol_app = typer.Typer(no_args_is_help=True, add_completion=False,
                            help="The fixed evaluation protocol: show it, record reference scores, score results.")
@@ -115,10 +119,20 @@ def show(as_json: bool = typer.Option(False, "--json", help="Print the protocol 
     typer.echo(f"evaluation: final policy, deterministic actions, {definition.EVAL_EPISODES} target episodes "
                f"(seeds {definition.EPISODE_SEEDS[0]}..{definition.EPISODE_SEEDS[-1]}), "
                f"at least {definition.MIN_SEEDS} training seeds")
-    typer.echo("core suite:")
+    typer.echo("core suite (reference mean returns; an oracle's per-seed means in brackets):")
     for task in definition.CORE_SUITE:
-        kinds = sorted(references.get(task, {}))
-        typer.echo(f"  {task:36s} references: {', '.join(kinds) if kinds else 'none yet'}")
+        scores = references.get(task, {})
+        shown = [_describe_reference(kind, scores[kind]) for kind in sorted(scores)]
+        typer.echo(f"  {task:36s} references: {'; '.join(shown) if shown else 'none yet'}")
+
+
+def _describe_reference(kind: str, score: ReferenceScore) -> str:
+    text = f"{kind} {score.mean_return:.1f}"
+    per_seed = score.provenance.get("episodes_per_seed")
+    if score.kind == "oracle" and isinstance(per_seed, int) and per_seed > 0 and len(score.returns) % per_seed == 0:
+        means = [sum(score.returns[i:i + per_seed]) / per_seed for i in range(0, len(score.returns), per_seed)]
+        text += f" [{', '.join(f'{m:.1f}' for m in means)}]"
+    return text
 
 
 @reference_app.command("random")

@@ -202,3 +202,30 @@ def test_oracle_reference_from_evaluations(tmp_path):
         with pytest.raises(ProtocolError, match=message):
             record_oracle_reference(evaluations, path)
         assert path.read_bytes() == before  # a refused oracle changes nothing
+
+
+def test_protocol_show_prints_each_core_task_reference_with_the_oracle_seed_means(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from offdyn_bench.cli import app
+    from offdyn_bench.protocol import references
+
+    first, second = protocol.CORE_SUITE[0], protocol.CORE_SUITE[1]
+    data = {"format": references.FORMAT, "format_version": 1, "protocol_version": protocol.PROTOCOL_VERSION,
+            "tasks": {
+                first: {"random": {"mean_return": 12.5, "returns": [12.0, 13.0], "provenance": {}},
+                        "oracle": {"lite": {"mean_return": 250.0, "returns": [100.0, 200.0, 300.0, 400.0],
+                                            "provenance": {"episodes_per_seed": 2}}}},
+                second: {"random": {"mean_return": -3.0, "returns": [-3.0], "provenance": {}}}}}
+    path = tmp_path / "reference_scores.json"
+    path.write_text(json.dumps(data))
+    monkeypatch.setattr(references, "REFERENCE_FILE", path)
+    result = CliRunner().invoke(app, ["protocol", "show"])
+    assert result.exit_code == 0, result.output
+    lines = {line.split()[0]: line for line in result.output.splitlines() if line.startswith("  ")}
+    # Seed-major episodes: seed means (100+200)/2 and (300+400)/2.
+    assert lines[first].endswith("references: oracle/lite 250.0 [150.0, 350.0]; random 12.5")
+    assert lines[second].endswith("references: random -3.0")
+    assert lines[protocol.CORE_SUITE[2]].endswith("references: none yet")
+    shown = json.loads(CliRunner().invoke(app, ["protocol", "show", "--json"]).output)
+    assert shown["references"][first] == ["oracle/lite", "random"]
