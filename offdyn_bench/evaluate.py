@@ -326,8 +326,8 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
              out: str | os.PathLike[str] | None = None, method: str | None = None,
              progress: bool = True, side: str = "target") -> dict[str, Any]:
     """Evaluate ``agent`` (a run folder or ``module:factory``) on ``task``'s target; write the
-    record to ``out`` (default: ``<run folder>/evaluation.json``; none for a factory without
-    ``out``) and return it. ``side="source"`` scores the same policies in the source instead, for
+    record to ``out`` (default: :func:`default_evaluation_path` in the run folder; none for a
+    factory without ``out``) and return it. ``side="source"`` scores the same policies in the source instead, for
     the source-target gap of a task (such a record is no protocol result)."""
     from tqdm import tqdm
 
@@ -367,7 +367,9 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
     track, budget, notes = _conformance(loaded, task, track, budget, episodes)
     if side == "source":
         notes.append("evaluated in the source, not the target (the source-target gap)")
-    target = pathlib.Path(out) if out is not None else (agent_path / EVALUATION_FILE if is_run else None)
+    trained_task = loaded.description.get("trained_task", task)
+    target = pathlib.Path(out) if out is not None else (
+        default_evaluation_path(agent_path, str(trained_task), task, side) if is_run else None)
     if target is not None:
         _check_writable(target)
 
@@ -415,6 +417,14 @@ def _command_args(agent: Any, task: str, track: str | None, budget: str | None, 
     args += ["--budget", budget] if budget else []
     args += ["--episodes", str(episodes)] if episodes != EVAL_EPISODES else []
     return args
+
+
+def default_evaluation_path(run_dir: pathlib.Path, trained_task: str, task: str, side: str) -> pathlib.Path:
+    """Where ``evaluate`` writes without ``--out``: ``evaluation.json`` is the run's protocol record
+    (its own task, in the target); another task of the same source or the source side gets a file
+    of its own, so that it never replaces that record."""
+    stem = "evaluation" + ("" if task == trained_task else f"-{task}") + ("-source" if side == "source" else "")
+    return run_dir / f"{stem}.json"
 
 
 def _check_writable(path: pathlib.Path) -> None:

@@ -64,8 +64,10 @@ def evaluate_command(
     seeds: str | None = typer.Option(None, "--seeds", help="Training seeds of a module:factory agent, e.g. 0,1,2,3,4."),
     episodes: int = typer.Option(20, "--episodes", help="Episodes per seed (the protocol uses 20)."),
     method: str | None = typer.Option(None, "--method", help="Method name recorded for a module:factory agent."),
-    out: Path | None = typer.Option(None, "--out", help="Where to write evaluation.json (default: inside the run "
-                                                        "folder; required to keep a factory's record)."),
+    out: Path | None = typer.Option(None, "--out", help="Where to write the record (default: the run folder's "
+                                                        "evaluation.json, or evaluation[-<task>][-source].json for "
+                                                        "another task or the source side; required to keep a "
+                                                        "factory's record)."),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
     side: str = typer.Option("target", "--side", help="target (the protocol) or source (the task's source-target "
                                                       "gap: the same policies in the source)."),
@@ -128,11 +130,8 @@ def show(as_json: bool = typer.Option(False, "--json", help="Print the protocol 
 
 def _describe_reference(kind: str, score: ReferenceScore) -> str:
     text = f"{kind} {score.mean_return:.1f}"
-    per_seed = score.provenance.get("episodes_per_seed")
-    if score.kind == "oracle" and isinstance(per_seed, int) and per_seed > 0 and len(score.returns) % per_seed == 0:
-        means = [sum(score.returns[i:i + per_seed]) / per_seed for i in range(0, len(score.returns), per_seed)]
-        text += f" [{', '.join(f'{m:.1f}' for m in means)}]"
-    return text
+    means = score.seed_means()
+    return text + (f" [{', '.join(f'{m:.1f}' for m in means)}]" if means else "")
 
 
 @reference_app.command("random")
@@ -208,3 +207,21 @@ def claims(evaluations: list[Path] = typer.Argument(..., help="evaluation.json f
                 raise OffdynError(f"--out {str(out)!r}: cannot write the report ({error.strerror}); nothing was "
                                   "written") from None
     typer.echo(json.dumps([c.to_dict() for c in checks], indent=1) if as_json else text.rstrip("\n"))
+
+
+@protocol_app.command("gap")
+def gap(evaluations: list[Path] = typer.Argument(..., help="evaluation.json files of one budget: sac-source's "
+                                                           "target-side and source-side (evaluate --side source) "
+                                                           "records."),
+        as_json: bool = typer.Option(False, "--json"),
+        reference_file: Path | None = typer.Option(None, "--reference-file", help="Reference scores (default: "
+                                                   "assets/reference_scores.json).")) -> None:
+    """The source-target gap per task: the return in the source and in the target, the fraction kept,
+    and how far below the task's oracle it stays (normalized score, P(oracle > method))."""
+    from offdyn_bench.evaluate import read_evaluation
+    from offdyn_bench.protocol.gap import gaps_markdown, measure_gaps
+
+    with exit_on_error():
+        gaps = measure_gaps([read_evaluation(path) for path in evaluations],
+                            str(reference_file) if reference_file is not None else None)
+    typer.echo(json.dumps([g.to_dict() for g in gaps], indent=1) if as_json else gaps_markdown(gaps).rstrip("\n"))

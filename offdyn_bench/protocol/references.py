@@ -49,6 +49,14 @@ class ReferenceScore:
     budget: str | None = None
     """The budget of an oracle; None for the random reference."""
 
+    def seed_means(self) -> tuple[float, ...] | None:
+        """An oracle's mean return per training seed (its episodes are stored seed-major); None for
+        the random reference or an entry that does not say its episodes per seed."""
+        per_seed = self.provenance.get("episodes_per_seed")
+        if self.kind != "oracle" or not isinstance(per_seed, int) or per_seed <= 0 or len(self.returns) % per_seed:
+            return None
+        return tuple(float(np.mean(self.returns[i:i + per_seed])) for i in range(0, len(self.returns), per_seed))
+
 
 def _path(path: str | os.PathLike[str] | None) -> pathlib.Path:
     return pathlib.Path(path) if path is not None else REFERENCE_FILE

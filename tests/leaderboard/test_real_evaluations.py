@@ -54,7 +54,8 @@ def test_a_submission_from_real_train_and_evaluate_output_validates(tmp_path, pe
 
 
 def test_records_that_are_no_protocol_result_are_refused(tmp_path, pendulum_protocol):
-    run = _evaluated_run(tmp_path / "runs", side="source")
+    # A source-side record written where the protocol record belongs (evaluate's default never does).
+    run = _evaluated_run(tmp_path / "runs", side="source", out=tmp_path / "runs" / "sac-source" / TASK / "evaluation.json")
     with pytest.raises(SubmissionError, match="evaluates the source side"):
         assemble_submission(tmp_path / "runs", method="my-sac")
     record = json.loads((run / "evaluation.json").read_text())

@@ -87,6 +87,22 @@ def test_the_source_side_gives_the_gap_and_is_no_protocol_result(finished_run, t
         evaluate(finished_run, progress=False, side="real")
 
 
+def test_default_records_of_the_source_side_or_another_task_never_replace_the_protocol_record(finished_run):
+    protocol_record = finished_run / "evaluation.json"
+    evaluate(finished_run, progress=False, episodes=1)
+    before = protocol_record.read_bytes()
+    source = evaluate(finished_run, progress=False, side="source", episodes=1)
+    other = "invertedpendulum-kinematic-slider-hard"  # the same nominal source: the same policy scores there
+    elsewhere = evaluate(finished_run, other, progress=False, episodes=1)
+    elsewhere_source = evaluate(finished_run, other, progress=False, side="source", episodes=1)
+    assert protocol_record.read_bytes() == before
+    assert read_evaluation(finished_run / "evaluation-source.json")["seeds"] == source["seeds"]
+    assert read_evaluation(finished_run / f"evaluation-{other}.json")["task"] == elsewhere["task"] == other
+    assert read_evaluation(finished_run / f"evaluation-{other}-source.json")["side"] == elsewhere_source["side"]
+    for name in ("evaluation-source.json", f"evaluation-{other}.json", f"evaluation-{other}-source.json"):
+        (finished_run / name).unlink()  # the module's other tests read the folder
+
+
 def test_run_agents_match_the_trainers_own_deployed_policy(finished_run):
     """The evaluator reads the actor out of the checkpoint; the trainer's final evaluation used the
     same policy on episode seed 1,000,000: replaying that seed must give the same return."""

@@ -1,0 +1,146 @@
+"""The source-target gap of each task: how hard its shift is for a policy trained in the source.
+
+The protocol measures it with ``sac-source`` (RL on source) evaluated on both sides of a task:
+``offdyn-bench evaluate --side source`` and the ordinary target evaluation. Per task this gives the
+return in the source, the return kept in the target, and, where the task has an oracle at the
+records' budget, how far below RL on target it stays: its normalized target score and P(oracle >
+RL on source) over training seeds. The core suite asks RL on source to clearly fail in the target
+(PROTOCOL.md §7); these numbers are that test at a protocol budget.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from offdyn_bench.evaluate import check_evaluation_record
+from offdyn_bench.protocol.definition import ProtocolError
+from offdyn_bench.protocol.scoring import merge_seed_means
+
+SIDES = ("source", "target")
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskGap:
+    method: str
+    task: str
+    budget: str
+    source_seed_means: tuple[float, ...]
+    """Per training seed, the mean return in the source (empty when no source-side record was given)."""
+    target_seed_means: tuple[float, ...]
+    random_return: float | None
+    oracle_seed_means: tuple[float, ...] | None
+    """The task's oracle at ``budget`` per training seed; None where the reference file has none."""
+
+    @property
+    def source_return(self) -> float | None:
+        return float(np.mean(self.source_seed_means)) if self.source_seed_means else None
+
+    @property
+    def target_return(self) -> float | None:
+        return float(np.mean(self.target_seed_means)) if self.target_seed_means else None
+
+    @property
+    def oracle_return(self) -> float | None:
+        return float(np.mean(self.oracle_seed_means)) if self.oracle_seed_means else None
+
+    @property
+    def kept(self) -> float | None:
+        """Target return over source return; None unless both exist and the source return is positive
+        (a fraction of a negative return means nothing)."""
+        source, target = self.source_return, self.target_return
+        if source is None or target is None or source <= 0:
+            return None
+        return target / source
+
+    @property
+    def normalized_target(self) -> float | None:
+        """The target return as a protocol score, 100 x (J - J_random) / (J_oracle - J_random)."""
+        target, oracle = self.target_return, self.oracle_return
+        if target is None or oracle is None or self.random_return is None or oracle == self.random_return:
+            return None
+        return 100.0 * (target - self.random_return) / (oracle - self.random_return)
+
+    @property
+    def oracle_better_probability(self) -> float | None:
+        """P(oracle seed > this method's seed) in the target, the protocol's Mann-Whitney statistic."""
+        if not self.oracle_seed_means or not self.target_seed_means:
+            return None
+        from offdyn_bench.protocol.statistics import probability_of_improvement
+
+        oracle = np.asarray(self.oracle_seed_means)[:, None]
+        return probability_of_improvement(oracle, np.asarray(self.target_seed_means)[:, None])
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"method": self.method, "task": self.task, "budget": self.budget,
+                "source_return": self.source_return, "source_seeds": len(self.source_seed_means),
+                "target_return": self.target_return, "target_seeds": len(self.target_seed_means),
+                "kept": self.kept, "random_return": self.random_return, "oracle_return": self.oracle_return,
+                "oracle_seeds": len(self.oracle_seed_means or ()), "normalized_target": self.normalized_target,
+                "p_oracle_better": self.oracle_better_probability}
+
+
+def measure_gaps(records: Sequence[Mapping[str, Any]], reference_file: str | None = None) -> list[TaskGap]:
+    """One row per (method, task) of ``records`` (evaluation.json contents, either side, one budget),
+    with the task's references at that budget from the reference file; in task order."""
+    from offdyn_bench.protocol.references import reference_scores
+
+    if not records:
+        raise ProtocolError("no evaluations given; pass sac-source's evaluation.json files, target side and "
+                            "source side (offdyn-bench evaluate --side source)")
+    seeds: dict[tuple[str, str, str], dict[int, float]] = {}
+    for i, record in enumerate(records):
+        where = f"evaluation {i + 1}" if not isinstance(record, Mapping) else \
+            f"the evaluation of {record.get('method')!r} on {record.get('task')!r}"
+        check_evaluation_record(record, where)
+        side = record.get("side", "target")
+        if side not in SIDES:
+            raise ProtocolError(f"{where}: side {side!r}; expected one of {', '.join(SIDES)}")
+        key = (str(record.get("method") or "agent"), str(record["task"]), str(side))
+        merge_seed_means(seeds.setdefault(key, {}), record, key[0], f"of task {key[1]!r} ({side} side)")
+    budgets = sorted({str(r.get("budget")) for r in records})
+    if len(budgets) > 1:
+        raise ProtocolError(f"the evaluations mix budgets {budgets}; measure one budget at a time")
+    (budget,) = budgets
+    references = reference_scores(reference_file)
+    gaps = []
+    for method, task in sorted({(m, t) for m, t, _ in seeds}, key=lambda mt: (mt[1], mt[0])):
+        source = seeds.get((method, task, "source"), {})
+        target = seeds.get((method, task, "target"), {})
+        if source and target and set(source) != set(target):
+            raise ProtocolError(f"{method} on {task}: the source side has training seeds {sorted(source)}, the "
+                                f"target side {sorted(target)}; evaluate the same policies on both sides")
+        task_references = references.get(task, {})
+        random = task_references.get("random")
+        oracle = task_references.get(f"oracle/{budget}")
+        gaps.append(TaskGap(method, task, budget,
+                            tuple(source[s] for s in sorted(source)), tuple(target[s] for s in sorted(target)),
+                            random.mean_return if random is not None else None,
+                            oracle.seed_means() if oracle is not None else None))
+    return gaps
+
+
+def _number(value: float | None, form: str = "{:.1f}") -> str:
+    return "-" if value is None else form.format(value)
+
+
+def gaps_markdown(gaps: Sequence[TaskGap]) -> str:
+    """A table: per (method, task) the returns on both sides, the fraction kept, and the oracle."""
+    budget = gaps[0].budget if gaps else "-"
+    lines = [f"| task | method | source return | target return | kept | oracle/{budget} | "
+             "normalized target score | P(oracle > method) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for gap in gaps:
+        lines.append(
+            f"| {gap.task} | {gap.method} | {_number(gap.source_return)} ({len(gap.source_seed_means)}) | "
+            f"{_number(gap.target_return)} ({len(gap.target_seed_means)}) | {_number(gap.kept, '{:.2f}')} | "
+            f"{_number(gap.oracle_return)} | {_number(gap.normalized_target)} | "
+            f"{_number(gap.oracle_better_probability, '{:.2f}')} |")
+    lines += ["", "Returns are means over training seeds (their number in brackets), each seed's return the mean "
+                  "of its episodes. kept = target / source return (only for a positive source return). The "
+                  "normalized score and P(oracle > method) need the task's random and oracle references at "
+                  "this budget; '-' where they are missing."]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,102 @@
+"""``offdyn-bench protocol gap``: the source-target gap per task against hand-computed returns,
+fractions kept, normalized scores and Mann-Whitney probabilities."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from offdyn_bench import protocol
+from offdyn_bench.cli import app
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.protocol.gap import gaps_markdown, measure_gaps
+from offdyn_bench.protocol.references import FORMAT as REFERENCE_FORMAT
+
+HOPPER = "hopper-gravity-0.5"
+WALKER = "walker2d-gravity-2.0"
+
+
+def record(method: str, task: str, seed_returns: dict[int, list[float]], *, budget: str = "lite",
+           side: str = "target") -> dict:
+    """An evaluation record with the fields the gap reads, as `offdyn-bench evaluate` writes them."""
+    return {"format": "offdyn-bench/evaluation", "format_version": 1, "protocol_version": "1.0", "task": task,
+            "side": side, "budget": budget, "method": method,
+            "seeds": [{"seed": s, "returns": r} for s, r in seed_returns.items()]}
+
+
+@pytest.fixture
+def reference_file(tmp_path):
+    """Hopper: random 25, an oracle at lite with seed means 300 and 625 (2 episodes each). Walker:
+    a random reference only."""
+    data = {"format": REFERENCE_FORMAT, "format_version": 1, "protocol_version": protocol.PROTOCOL_VERSION,
+            "tasks": {HOPPER: {"random": {"mean_return": 25.0, "returns": [25.0], "provenance": {}},
+                               "oracle": {"lite": {"mean_return": 462.5, "returns": [250.0, 350.0, 600.0, 650.0],
+                                                   "provenance": {"episodes_per_seed": 2}}}},
+                      WALKER: {"random": {"mean_return": 1.0, "returns": [1.0], "provenance": {}}}}}
+    path = tmp_path / "reference_scores.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def both_sides(task=HOPPER, source=None, target=None, **kwargs):
+    return [record("sac-source", task, source or {0: [1000.0], 1: [800.0]}, side="source", **kwargs),
+            record("sac-source", task, target or {0: [100.0, 200.0], 1: [300.0]}, **kwargs)]
+
+
+def test_gap_against_hand_computed_values(reference_file):
+    [gap] = measure_gaps(both_sides(), str(reference_file))
+    # Seed means: source 1000, 800 -> 900; target 150, 300 -> 225; kept 225 / 900.
+    assert (gap.source_return, gap.target_return, gap.kept) == (900.0, 225.0, 0.25)
+    # Oracle seed means 300 and 625: mean 462.5; 100 x (225 - 25) / (462.5 - 25).
+    assert gap.oracle_seed_means == (300.0, 625.0) and gap.oracle_return == 462.5
+    assert gap.normalized_target == pytest.approx(100 * 200 / 437.5)
+    # Oracle against RL on source over seed pairs: 300>150, 300=300 (1/2), 625>150, 625>300.
+    assert gap.oracle_better_probability == 0.875
+    text = gaps_markdown([gap])
+    assert "| hopper-gravity-0.5 | sac-source | 900.0 (2) | 225.0 (2) | 0.25 | 462.5 | 45.7 | 0.88 |" in text
+
+
+def test_missing_references_and_a_non_positive_source_give_no_invented_numbers(reference_file):
+    walker = both_sides(WALKER, source={0: [-10.0]}, target={0: [5.0]})
+    hopper_target_only = [record("sac-source", HOPPER, {0: [50.0]})]
+    gaps = {g.task: g for g in measure_gaps(walker + hopper_target_only, str(reference_file))}
+    assert gaps[WALKER].kept is None  # a fraction of a negative source return means nothing
+    assert gaps[WALKER].oracle_return is None and gaps[WALKER].normalized_target is None
+    assert gaps[WALKER].oracle_better_probability is None
+    assert gaps[HOPPER].source_return is None and gaps[HOPPER].kept is None
+    assert gaps[HOPPER].normalized_target == pytest.approx(100 * 25 / 437.5)
+    assert "| walker2d-gravity-2.0 | sac-source | -10.0 (1) | 5.0 (1) | - | - | - | - |" in gaps_markdown(
+        list(gaps.values()))
+
+
+@pytest.mark.parametrize("records, message", [
+    ([], "no evaluations given"),
+    (both_sides(target={0: [1.0], 2: [1.0]}), r"source side has training seeds \[0, 1\], the target side \[0, 2\]"),
+    (both_sides() + [record("sac-source", HOPPER, {1: [5.0]})], r"training seed\(s\) \[1\] of task"),
+    (both_sides() + [record("sac-source", WALKER, {0: [1.0]}, budget="full")], "mix budgets"),
+    ([record("sac-source", HOPPER, {0: [1.0]}, side="sideways")], "side 'sideways'; expected one of source, target"),
+    ([{"task": HOPPER, "seeds": "many"}], "'seeds' is not a non-empty list"),
+])
+def test_bad_evaluations_are_refused_with_what_was_expected(records, message, reference_file):
+    with pytest.raises(OffdynError, match=message):
+        measure_gaps(records, str(reference_file))
+
+
+def test_gap_command_reads_evaluation_files(tmp_path, reference_file):
+    paths = []
+    for i, one in enumerate(both_sides()):
+        path = tmp_path / f"evaluation-{i}.json"
+        path.write_text(json.dumps(one))
+        paths.append(str(path))
+    runner = CliRunner()
+    result = runner.invoke(app, ["protocol", "gap", *paths, "--reference-file", str(reference_file)])
+    assert result.exit_code == 0, result.output
+    assert "| hopper-gravity-0.5 | sac-source | 900.0 (2) | 225.0 (2) | 0.25 |" in result.output
+    rows = json.loads(runner.invoke(app, ["protocol", "gap", *paths, "--json", "--reference-file",
+                                          str(reference_file)]).output)
+    assert rows[0]["kept"] == 0.25 and rows[0]["p_oracle_better"] == 0.875 and rows[0]["source_seeds"] == 2
+    (tmp_path / "not.json").write_text("{}")
+    refused = runner.invoke(app, ["protocol", "gap", str(tmp_path / "not.json")])
+    assert refused.exit_code == 2 and "is not an offdyn-bench/evaluation file" in refused.output
