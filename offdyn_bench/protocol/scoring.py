@@ -63,6 +63,11 @@ def method_scores(method: str, records: Iterable[Mapping[str, Any]], budget: str
     folder per seed, as a sweep makes them); a seed in two of them is refused."""
     by_task: dict[str, dict[int, float]] = {}
     for record in records:
+        if record.get("side", "target") != "target":
+            # Scored against the target's references, source returns would pass for target ones.
+            raise ProtocolError(f"{method} on {record['task']}: a {record.get('side')}-side evaluation (the "
+                                "source-target gap); scores are of target returns: pass target-side records, and "
+                                "give both sides to `offdyn-bench protocol gap`")
         merge_seed_means(by_task.setdefault(record["task"], {}), record, method, f"of task {record['task']!r}")
     tasks = tuple(tasks) if tasks is not None else tuple(sorted(by_task))
     absent = [t for t in tasks if t not in by_task]

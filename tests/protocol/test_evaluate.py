@@ -235,6 +235,9 @@ def test_a_tasks_seeds_may_come_in_one_record_per_run():
     assert score_report(per_run, references=references).to_dict() == whole.to_dict()
     with pytest.raises(ProtocolError, match=r"training seed\(s\) \[0\] of task 'a' are in two evaluations"):
         score_report([per_run[0], per_run[0]], references=references)
+    source_side = dict(per_run[0], side="source")
+    with pytest.raises(ProtocolError, match="a source-side evaluation .* give both sides to `offdyn-bench protocol gap`"):
+        score_report([source_side, per_run[1]], references=references)
 
 
 def test_a_matl_run_is_evaluated_with_its_robot_policy(tmp_path):
