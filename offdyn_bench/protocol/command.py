@@ -74,26 +74,29 @@ def evaluate_command(
 ) -> None:
     """Evaluate the final policy of every training seed on the task's target under the protocol:
     deterministic actions, fixed episode seeds; writes raw per-episode returns with versions."""
-    from offdyn_bench.evaluate import evaluate
-    from offdyn_bench.protocol.scoring import method_scores
+    from offdyn_bench.evaluate import default_evaluation_path, evaluate
+    from offdyn_bench.protocol.scoring import method_scores, seed_means
 
     with exit_on_error():
         record = evaluate(agent, task, track=track, budget=budget, seeds=_parse_seeds(seeds), episodes=episodes,
                           out=out, method=method, progress=progress, side=side)
-        scores = method_scores(record["method"] or "agent", [record], record["budget"])
+        # A source-side record is no score: its per-seed returns only (protocol gap compares the sides).
+        scores = method_scores(record["method"] or "agent", [record], record["budget"]) if side == "target" else None
     truncated = {entry["seed"]: entry["truncated"] for entry in record["seeds"]}
-    for i, seed in enumerate(scores.seeds):
-        line = f"seed {seed}: mean target return {scores.raw[i, 0]:.1f}"
-        if scores.normalized is not None:
-            line += f", normalized {scores.normalized[i, 0]:.1f}"
+    for seed, mean in seed_means(record).items():
+        line = f"seed {seed}: mean {side} return {mean:.1f}"
+        if scores is not None and scores.normalized is not None:
+            line += f", normalized {scores.normalized[scores.seeds.index(seed), 0]:.1f}"
         ran_out = truncated[seed]
         typer.echo(line + f" ({sum(ran_out)}/{len(ran_out)} episodes ran to the time limit)")
-    if scores.missing_references:
+    if scores is not None and scores.missing_references:
         typer.echo(f"no normalized score: {record['task']} has no random and oracle reference"
                    + (f" at budget {record['budget']!r}" if record["budget"] else " (no protocol budget)"))
     for note in record["notes"]:
         typer.echo(f"not a protocol result: {note}")
-    where = out if out is not None else (Path(agent) / "evaluation.json" if Path(agent).is_dir() else None)
+    where = out if out is not None else (
+        default_evaluation_path(Path(agent), str(record["agent"].get("trained_task", record["task"])),
+                                record["task"], side) if Path(agent).is_dir() else None)
     if where is not None:
         typer.echo(f"wrote {where}")
 

@@ -194,6 +194,12 @@ def test_evaluate_cli(finished_run, tmp_path):
                                  "--out", str(tmp_path / "e.json")])
     assert result.exit_code == 0, result.output
     assert "seed 3: mean target return" in result.output and "not a protocol result" in result.output
+    source = runner.invoke(app, ["evaluate", "--agent", str(finished_run), "--no-progress", "--side", "source",
+                                 "--episodes", "1"])
+    assert source.exit_code == 0, source.output
+    assert "seed 3: mean source return" in source.output and "normalized" not in source.output
+    assert f"wrote {finished_run / 'evaluation-source.json'}" in source.output
+    (finished_run / "evaluation-source.json").unlink()  # the module's other tests read the folder
     bad = runner.invoke(app, ["evaluate", "--agent", str(tmp_path / "nothing"), "--no-progress"])
     assert bad.exit_code == 2 and bad.output.startswith("error: ") and "Traceback" not in bad.output
     seeds = runner.invoke(app, ["evaluate", "--agent", "m:f", "--task", PENDULUM, "--seeds", "0,x"])
