@@ -327,8 +327,8 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
              progress: bool = True, side: str = "target") -> dict[str, Any]:
     """Evaluate ``agent`` (a run folder or ``module:factory``) on ``task``'s target; write the
     record to ``out`` (default: :func:`default_evaluation_path` in the run folder; none for a
-    factory without ``out``) and return it. ``side="source"`` scores the same policies in the source instead, for
-    the source-target gap of a task (such a record is no protocol result)."""
+    factory without ``out``) and return it. ``side="source"`` scores the same policies in the
+    source instead, for the source-target gap of a task (such a record is no protocol result)."""
     from tqdm import tqdm
 
     from offdyn_bench.tasks import get_task
