@@ -26,9 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from offdyn_bench.evaluate import check_evaluation_record
 from offdyn_bench.protocol.definition import ProtocolError
-from offdyn_bench.protocol.scoring import merge_seed_means
+from offdyn_bench.protocol.scoring import group_seed_means, single_budget
 
 NO_DATASET = "-"
 """The dataset label of a method that trains on no target data."""
@@ -103,16 +102,13 @@ def dataset_label(record: Mapping[str, Any]) -> str:
 
 def _seed_returns(records: Sequence[Mapping[str, Any]]) -> dict[tuple[str, str, str], dict[int, float]]:
     """(method, task, dataset) -> training seed -> mean target return; a seed twice is refused."""
-    out: dict[tuple[str, str, str], dict[int, float]] = {}
-    for i, record in enumerate(records):
-        check_evaluation_record(record, f"evaluation {i + 1}" if not isinstance(record, Mapping) else
-                                f"the evaluation of {record.get('method')!r} on {record.get('task')!r}")
+    def key_of(record: Mapping[str, Any], where: str) -> tuple[str, str, str]:
         if record.get("side", "target") != "target":
             raise ProtocolError(f"{record.get('method')} on {record.get('task')}: a source-side evaluation; the "
                                 "claims are about target returns")
-        key = (str(record.get("method") or "agent"), str(record["task"]), dataset_label(record))
-        merge_seed_means(out.setdefault(key, {}), record, key[0], f"of task {key[1]!r} (dataset {key[2]})")
-    return out
+        return str(record.get("method") or "agent"), str(record["task"]), dataset_label(record)
+
+    return group_seed_means(records, key_of, lambda key: f"of task {key[1]!r} (dataset {key[2]})")
 
 
 def check_claims(records: Sequence[Mapping[str, Any]],
@@ -123,9 +119,7 @@ def check_claims(records: Sequence[Mapping[str, Any]],
     if not records:
         raise ProtocolError("no evaluations to check the claims on")
     returns = _seed_returns(records)
-    budgets = sorted({str(r.get("budget")) for r in records})
-    if len(budgets) > 1:
-        raise ProtocolError(f"the evaluations mix budgets {budgets}; check one budget at a time")
+    single_budget(records, "check")
     checks = []
     for task in sorted({task for _, task, _ in returns}):
         datasets = sorted({d for _, t, d in returns if t == task and d != NO_DATASET}) or [NO_DATASET]

@@ -16,9 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from offdyn_bench.evaluate import check_evaluation_record
 from offdyn_bench.protocol.definition import ProtocolError
-from offdyn_bench.protocol.scoring import merge_seed_means
+from offdyn_bench.protocol.scoring import group_seed_means, single_budget
 
 SIDES = ("source", "target")
 
@@ -91,20 +90,14 @@ def measure_gaps(records: Sequence[Mapping[str, Any]], reference_file: str | Non
     if not records:
         raise ProtocolError("no evaluations given; pass sac-source's evaluation.json files, target side and "
                             "source side (offdyn-bench evaluate --side source)")
-    seeds: dict[tuple[str, str, str], dict[int, float]] = {}
-    for i, record in enumerate(records):
-        where = f"evaluation {i + 1}" if not isinstance(record, Mapping) else \
-            f"the evaluation of {record.get('method')!r} on {record.get('task')!r}"
-        check_evaluation_record(record, where)
+    def key_of(record: Mapping[str, Any], where: str) -> tuple[str, str, str]:
         side = record.get("side", "target")
         if side not in SIDES:
             raise ProtocolError(f"{where}: side {side!r}; expected one of {', '.join(SIDES)}")
-        key = (str(record.get("method") or "agent"), str(record["task"]), str(side))
-        merge_seed_means(seeds.setdefault(key, {}), record, key[0], f"of task {key[1]!r} ({side} side)")
-    budgets = sorted({str(r.get("budget")) for r in records})
-    if len(budgets) > 1:
-        raise ProtocolError(f"the evaluations mix budgets {budgets}; measure one budget at a time")
-    (budget,) = budgets
+        return str(record.get("method") or "agent"), str(record["task"]), str(side)
+
+    seeds = group_seed_means(records, key_of, lambda key: f"of task {key[1]!r} ({key[2]} side)")
+    budget = single_budget(records, "measure")
     references = reference_scores(reference_file)
     gaps = []
     for method, task in sorted({(m, t) for m, t, _ in seeds}, key=lambda mt: (mt[1], mt[0])):

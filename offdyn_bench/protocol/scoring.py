@@ -7,13 +7,15 @@ normalized mean of its episodes' returns, and a method's score matrix is ``(seed
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any, TypeVar
 
 import numpy as np
 
 from offdyn_bench.protocol.definition import ProtocolError
 from offdyn_bench.protocol.references import normalize, reference_pair
+
+Key = TypeVar("Key", bound=tuple[str, ...])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +53,31 @@ def merge_seed_means(into: dict[int, float], record: Mapping[str, Any], method: 
         raise ProtocolError(f"{method}: training seed(s) {twice} {where} are in two evaluations; pass each "
                             "seed's evaluation once")
     into.update(means)
+
+
+def group_seed_means(records: Sequence[Mapping[str, Any]], key_of: Callable[[Mapping[str, Any], str], Key],
+                     where_of: Callable[[Key], str]) -> dict[Key, dict[int, float]]:
+    """Check each evaluation record and merge its per-seed means under ``key_of(record, where)``
+    (a tuple whose first item is the method; ``key_of`` may refuse a record, naming ``where``),
+    with :func:`merge_seed_means`: a seed twice under one key is refused, said with ``where_of(key)``."""
+    from offdyn_bench.evaluate import check_evaluation_record
+
+    out: dict[Key, dict[int, float]] = {}
+    for i, record in enumerate(records):
+        where = f"evaluation {i + 1}" if not isinstance(record, Mapping) else \
+            f"the evaluation of {record.get('method')!r} on {record.get('task')!r}"
+        check_evaluation_record(record, where)
+        key = key_of(record, where)
+        merge_seed_means(out.setdefault(key, {}), record, key[0], where_of(key))
+    return out
+
+
+def single_budget(records: Iterable[Mapping[str, Any]], purpose: str) -> str:
+    """The one budget of ``records`` (``"None"`` when unset); mixed budgets are refused."""
+    budgets = sorted({str(r.get("budget")) for r in records})
+    if len(budgets) > 1:
+        raise ProtocolError(f"the evaluations mix budgets {budgets}; {purpose} one budget at a time")
+    return budgets[0]
 
 
 def method_scores(method: str, records: Iterable[Mapping[str, Any]], budget: str | None,
