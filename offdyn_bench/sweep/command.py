@@ -40,14 +40,14 @@ def sweep_command(
     with exit_on_error():
         spec = load_spec(spec_path, out=out)
         if dry_run:
-            from offdyn_bench.sweep.runs import expand, finished_evaluation
+            from offdyn_bench.sweep.runs import expand, run_finished
 
             runs = expand(spec)
             for run in runs:
-                status = "done" if finished_evaluation(run) is not None else "to run"
+                status = "done" if run_finished(run) else "to run"
                 shared = f", scores the policy of {run.shared_training}" if run.shared_training is not None else ""
                 typer.echo(f"{run.run_id} ({status}{shared})")
-                for args in (run.train_args, run.evaluate_args):
+                for args in filter(None, (run.train_args, run.evaluate_args, run.source_evaluate_args)):
                     typer.echo("  " + shlex.join(["offdyn-bench", *args]))
             typer.echo(f"{len(runs)} runs; python: {command_line([])[0]}")
             return

@@ -33,6 +33,7 @@ from offdyn_bench.sweep.runs import (
     expand,
     finished_evaluation,
     official_datasets,
+    run_finished,
     settings_conflict,
 )
 from offdyn_bench.sweep.spec import SpecError, SweepSpec
@@ -200,7 +201,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
     # The backend before anything is written: a Ray cluster that could never place a run is
     # refused with nothing changed. None when every run is evaluated already.
     engine: Backend | None = None
-    if any(finished_evaluation(run) is None for run in runs):
+    if not all(run_finished(run) for run in runs):
         engine = make_backend(backend, spec, workers)
     try:
         with _sweep_lock(spec.out):
@@ -218,7 +219,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
             pending = []
             for run in runs:
                 record = records[run.run_id]
-                evaluation = finished_evaluation(run)
+                evaluation = finished_evaluation(run) if run_finished(run) else None
                 if evaluation is not None:
                     record.status, record.error = "done", None
                     returns = [float(x) for seed in evaluation["seeds"] for x in seed["returns"]]
@@ -342,6 +343,12 @@ def summary_lines(report: SweepReport) -> list[str]:
     if len(evaluated) > 1:
         pattern = report.spec.out / RUNS_DIR / "*" / "*" / "*" / EVALUATION_FILE
         lines.append(f"the papers' claims on what is done: offdyn-bench protocol claims {pattern}")
+    gap_methods = sorted({run.method for run in report.runs
+                          if run.source_evaluate_args and report.records[run.run_id].status == "done"})
+    for method in gap_methods:
+        # Both sides of each task: evaluation.json (target) and evaluation-source.json.
+        pattern = report.spec.out / RUNS_DIR / method / "*" / "*" / "evaluation*.json"
+        lines.append(f"each task's source-target gap ({method} on both sides): offdyn-bench protocol gap {pattern}")
     for method in report.spec.methods:
         if method not in report.submissions:
             lines.append(f"{method}: not every run finished; no merged evaluations yet")

@@ -1,5 +1,6 @@
 """One attempt at one run, as a worker executes it (in a thread of the local pool or a Ray task):
-``offdyn-bench train`` then ``offdyn-bench evaluate``, each in a subprocess.
+``offdyn-bench train`` then ``offdyn-bench evaluate`` (for RL on source, on both sides of the
+task), each in a subprocess.
 
 Subprocesses keep a crash, a kill or a leak of one run out of the sweep, and they are the very
 commands a person would type. A run folder that already holds ``result.json`` is only evaluated
@@ -23,7 +24,14 @@ from pathlib import Path
 from typing import Any
 
 from baselines.run_folder import LOCK_FILE
-from offdyn_bench.sweep.runs import EVALUATION_FILE, RESULT_FILE, Run, finished_evaluation, settings_conflict
+from offdyn_bench.sweep.runs import (
+    EVALUATION_FILE,
+    RESULT_FILE,
+    SOURCE_EVALUATION_FILE,
+    Run,
+    finished_evaluation,
+    settings_conflict,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,16 +96,29 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
             cpu += used
             if code != 0:
                 return outcome(False, "train", code, _exit_text("train", code, run.log))
-        code, used = _run_logged(command_line(run.evaluate_args), log)
-        cpu += used
-        if code != 0:
-            return outcome(False, "evaluate", code, _exit_text("evaluate", code, run.log))
+        sides = [("target", run.evaluate_args)] + ([("source", run.source_evaluate_args)]
+                                                   if run.source_evaluate_args else [])
+        for side, args in sides:
+            if finished_evaluation(run, side) is not None:
+                # An earlier attempt (or a sweep before the source side was owed) wrote it.
+                log.write(f"=== the {side} side is evaluated already: {_evaluation_path(run, side)}\n")
+                continue
+            code, used = _run_logged(command_line(args), log)
+            cpu += used
+            if code != 0:
+                return outcome(False, "evaluate", code, _exit_text("evaluate", code, run.log))
+            if finished_evaluation(run, side) is None:
+                return outcome(False, "check", error=f"{_evaluation_path(run, side)} does not hold the expected "
+                                                     f"{run.evaluation_episodes} episodes of seeds {list(run.seeds)}")
         record = finished_evaluation(run)
-        if record is None:
-            return outcome(False, "check", error=f"{run.folder / EVALUATION_FILE} does not hold the expected "
-                                                 f"{run.evaluation_episodes} episodes of seeds {list(run.seeds)}")
+        if record is None:  # removed or replaced while the source side ran
+            return outcome(False, "check", error=f"{_evaluation_path(run, 'target')} changed during the attempt")
         returns = [float(x) for seed in record["seeds"] for x in seed["returns"]]
         return outcome(True, "check", mean_return=sum(returns) / len(returns))
+
+
+def _evaluation_path(run: Run, side: str) -> Path:
+    return run.folder / (EVALUATION_FILE if side == "target" else SOURCE_EVALUATION_FILE)
 
 
 def _wait_for_other_trainer(folder: Path, log: Any) -> None:

@@ -18,6 +18,8 @@ from offdyn_bench.sweep.spec import CORE, SpecError, SweepSpec
 
 RUNS_DIR, LOGS_DIR = "runs", "logs"
 EVALUATION_FILE, RESULT_FILE, CONFIG_FILE = "evaluation.json", "result.json", "config.json"
+SOURCE_EVALUATION_FILE = "evaluation-source.json"
+"""A source-only run's evaluation in its task's source: the other half of the task's gap (PROTOCOL.md §7)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +51,10 @@ class Run:
     method on a task whose source an earlier task of the sweep has: ``train_args`` and
     ``settings`` are then that run's, and ``evaluate`` scores its policy on this run's task into
     ``folder``); None: the run trains in ``folder``."""
+    source_evaluate_args: tuple[str, ...] = ()
+    """For a source-only method (sac-source), the arguments of ``offdyn-bench`` that score the same
+    policy in the task's source (``evaluate --side source``, into ``evaluation-source.json``): with
+    the target record this is the task's source-target gap (``protocol gap``). Empty for the others."""
 
     @property
     def training_folder(self) -> Path:
@@ -189,6 +195,8 @@ def expand(spec: SweepSpec) -> list[Run]:
                             shared_training=donor.folder,
                             evaluate_args=tuple(_evaluate_args(spec, donor.folder, task=task,
                                                                out=folder / EVALUATION_FILE)))
+                    run = dataclasses.replace(run, source_evaluate_args=tuple(_evaluate_args(
+                        spec, donor.folder, task=task, out=folder / SOURCE_EVALUATION_FILE, side="source")))
                 runs.append(run)
     return runs
 
@@ -211,12 +219,14 @@ def _train_args(spec: SweepSpec, method: str, task: str, seeds: tuple[int, ...],
     return args + ["--out", str(folder)]
 
 
-def _evaluate_args(spec: SweepSpec, folder: Path, *, task: str | None = None, out: Path | None = None) -> list[str]:
+def _evaluate_args(spec: SweepSpec, folder: Path, *, task: str | None = None, out: Path | None = None,
+                   side: str = "target") -> list[str]:
     # --track also for the reference methods (sac-source, sac-target): their records then name the
     # track they are submitted beside, like every other run of the sweep.
     args = ["evaluate", "--agent", str(folder), "--track", spec.track, "--episodes", str(spec.evaluation_episodes),
             "--no-progress"]
-    return args + (["--task", task] if task is not None else []) + (["--out", str(out)] if out is not None else [])
+    return (args + (["--task", task] if task is not None else []) + (["--side", side] if side != "target" else [])
+            + (["--out", str(out)] if out is not None else []))
 
 
 def official_datasets(runs: Sequence[Run]) -> list[str]:
@@ -226,10 +236,18 @@ def official_datasets(runs: Sequence[Run]) -> list[str]:
                               if dataset is not None))
 
 
-def finished_evaluation(run: Run) -> dict[str, Any] | None:
-    """The run's ``evaluation.json`` when it is a complete evaluation of exactly this run (its
-    method, task, seeds, steps and episode count, in the target); otherwise None."""
-    path = run.folder / EVALUATION_FILE
+def run_finished(run: Run) -> bool:
+    """Whether every evaluation the run owes is complete: the target's, and for a source-only
+    method the source side's too."""
+    return finished_evaluation(run) is not None and (
+        not run.source_evaluate_args or finished_evaluation(run, side="source") is not None)
+
+
+def finished_evaluation(run: Run, side: str = "target") -> dict[str, Any] | None:
+    """The run's ``evaluation.json`` (``side="source"``: ``evaluation-source.json``) when it is a
+    complete evaluation of exactly this run (its method, task, seeds, steps and episode count, on
+    that side); otherwise None."""
+    path = run.folder / (EVALUATION_FILE if side == "target" else SOURCE_EVALUATION_FILE)
     try:
         record = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
@@ -240,7 +258,7 @@ def finished_evaluation(run: Run) -> dict[str, Any] | None:
     if not isinstance(seeds, list) or not all(isinstance(s, dict) for s in seeds):
         return None
     same = (record.get("method") == run.method and record.get("task") == run.task
-            and record.get("steps") == run.steps and record.get("side", "target") == "target"
+            and record.get("steps") == run.steps and record.get("side", "target") == side
             and sorted(s.get("seed") for s in seeds) == list(run.seeds)  # type: ignore[type-var]
             and all(isinstance(s.get("returns"), list) and len(s["returns"]) == run.evaluation_episodes
                     for s in seeds))

@@ -7,6 +7,7 @@ of its own would.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -58,6 +59,13 @@ def test_the_core_suite_trains_rl_on_source_once_per_robot_and_seed(tmp_path, ti
         assert args[args.index("--agent") + 1] == str(donor.folder)
         assert args[args.index("--task") + 1] == run.task
         assert args[args.index("--out") + 1] == str(run.folder / "evaluation.json")
+    # RL on source is scored on both sides of every task (the gap); RL on target only in the target.
+    for run in source_runs:
+        args = list(run.source_evaluate_args)
+        assert args[args.index("--agent") + 1] == str(run.training_folder)
+        assert args[args.index("--task") + 1] == run.task and args[args.index("--side") + 1] == "source"
+        assert args[args.index("--out") + 1] == str(run.folder / "evaluation-source.json")
+    assert all(run.source_evaluate_args == () for run in target_runs)
 
 
 def test_the_second_task_scores_the_first_tasks_policy_without_training(shared_source_sweep):
@@ -65,8 +73,8 @@ def test_the_second_task_scores_the_first_tasks_policy_without_training(shared_s
     assert (first.task, second.task) == (FIRST, SECOND) and second.shared_training == first.folder
     assert not shared_source_sweep.failed
     assert (first.folder / "result.json").exists() and (first.folder / "checkpoints").is_dir()
-    # Nothing was trained for the second task: its folder holds its evaluation only.
-    assert sorted(p.name for p in second.folder.iterdir()) == ["evaluation.json"]
+    # Nothing was trained for the second task: its folder holds its evaluations only, both sides.
+    assert sorted(p.name for p in second.folder.iterdir()) == ["evaluation-source.json", "evaluation.json"]
     log = second.log.read_text()
     assert f"scores the policy trained in {first.folder}" in log and " train " not in log
     state = json.loads((shared_source_sweep.spec.out / STATE_FILE).read_text())
@@ -146,3 +154,51 @@ def test_runs_scoring_a_failed_training_fail_with_it_without_retrying_it(tmp_pat
     assert shared.status == "failed" and shared.attempts == 0  # never launched: it would repeat the failure
     assert shared.error == f"the training it scores ({first.run_id}) failed; see {first.log}"
     assert not second.log.exists() and sorted(p.name for p in blocked.iterdir()) == ["notes.txt"]
+
+
+def test_the_sweep_gives_each_tasks_source_target_gap(shared_source_sweep):
+    """Both sides of both tasks come from the sweep alone, and `protocol gap` reads them: one
+    source return (both tasks share the source, so the same policy scores the same there) and each
+    task's own target return."""
+    from offdyn_bench.protocol.gap import measure_gaps
+    from offdyn_bench.sweep.driver import summary_lines
+
+    first, second = shared_source_sweep.runs
+    records = [json.loads((run.folder / name).read_text()) for run in (first, second)
+               for name in ("evaluation.json", "evaluation-source.json")]
+    sides = [(record["task"], record["side"]) for record in records]
+    assert sides == [(FIRST, "target"), (FIRST, "source"), (SECOND, "target"), (SECOND, "source")]
+    assert records[1]["seeds"] == records[3]["seeds"]  # one source simulator, one policy
+    assert records[0]["seeds"] != records[2]["seeds"]  # two targets
+    gaps = {gap.task: gap for gap in measure_gaps(records)}
+    assert set(gaps) == {FIRST, SECOND}
+    for index, task in ((0, FIRST), (2, SECOND)):
+        target = [float(x) for x in records[index]["seeds"][0]["returns"]]
+        source = [float(x) for x in records[index + 1]["seeds"][0]["returns"]]
+        assert gaps[task].target_return == pytest.approx(sum(target) / len(target))
+        assert gaps[task].source_return == pytest.approx(sum(source) / len(source))
+    lines = summary_lines(shared_source_sweep)
+    pattern = shared_source_sweep.spec.out / "runs" / "sac-source" / "*" / "*" / "evaluation*.json"
+    assert f"each task's source-target gap (sac-source on both sides): offdyn-bench protocol gap {pattern}" in lines
+
+
+def test_a_sweep_made_before_the_source_side_adds_only_the_source_evaluations(shared_source_sweep, tmp_path):
+    """A finished run missing its source-side record (a sweep of an earlier version) is not done:
+    running the sweep again writes the source side and leaves the target record untouched."""
+    from offdyn_bench.sweep.driver import run_sweep
+
+    out = tmp_path / "out"
+    shutil.copytree(shared_source_sweep.spec.out, out)
+    spec = dataclasses.replace(shared_source_sweep.spec, out=out)
+    runs = expand(spec)
+    target_bytes = {run.run_id: (run.folder / "evaluation.json").read_bytes() for run in runs}
+    for run in runs:
+        (run.folder / "evaluation-source.json").unlink()
+    report = run_sweep(spec, workers=1, echo=None)
+    assert not report.failed
+    for run in runs:
+        assert (run.folder / "evaluation.json").read_bytes() == target_bytes[run.run_id]
+        assert json.loads((run.folder / "evaluation-source.json").read_text())["side"] == "source"
+        log = run.log.read_text().split("=== attempt 2 ")[-1]
+        assert "the target side is evaluated already" in log and "--side source" in log
+        assert " train " not in log

@@ -23,7 +23,7 @@ ROUNDS = 3
 
 def _direct(runs) -> None:
     def chain(run) -> None:
-        for args in (run.train_args, run.evaluate_args):
+        for args in filter(None, (run.train_args, run.evaluate_args, run.source_evaluate_args)):
             subprocess.run(command_line(args), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
