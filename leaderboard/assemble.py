@@ -31,7 +31,8 @@ _SHARED_FIELDS = ("protocol_version", "track", "budget", "method", "versions")
 """Fields every evaluation of one submission must agree on."""
 
 
-def _read_evaluation(path: Path) -> dict[str, Any]:
+def read_evaluation(path: Path) -> dict[str, Any]:
+    """The ``offdyn-bench evaluate`` record at ``path``, strictly parsed (NaN and duplicate keys refused)."""
     try:
         document = parse_json_strict(path.read_bytes(), source=str(path))
     except OSError as error:
@@ -102,7 +103,7 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
     if not paths:
         raise SubmissionError(f"no {EVALUATION_FILE} under {runs_dir}; run `offdyn-bench evaluate` on each "
                               "run folder first")
-    evaluations = {path: _read_evaluation(path) for path in paths}
+    evaluations = {path: read_evaluation(path) for path in paths}
 
     for path, evaluation in evaluations.items():
         # `evaluate` says itself when a record is no protocol result (the source side, another

@@ -1,4 +1,4 @@
-"""``offdyn-bench leaderboard submit | validate | build | serve | token``.
+"""``offdyn-bench leaderboard submit | publish-runs | validate | build | serve | token``.
 
 Only typer and the standard library are imported here: the CLI imports this module at start, so
 numpy, jsonschema, matplotlib, SQLAlchemy, Starlette and uvicorn load inside the commands.
@@ -62,6 +62,28 @@ def submit_command(
                    f"{len(submission.tasks)} tasks x {seeds} seeds (valid under protocol {submission.protocol_version})")
 
 
+@leaderboard_app.command("publish-runs")
+def publish_runs_command(
+    sweep_out: Annotated[Path, typer.Argument(help="Out folder of `offdyn-bench sweep` (it holds runs/).")],
+    to: Annotated[Optional[Path], typer.Option(
+        "--to", help="Destination (default: the repository's leaderboard/reference-runs).")] = None,
+    method: Annotated[Optional[list[str]], typer.Option(
+        "--method", help="Only this method's runs (repeatable; default every method in the sweep).")] = None,
+    replace: Annotated[bool, typer.Option(
+        help="Replace published records whose bytes differ (published numbers change only with this).")] = False,
+) -> None:
+    """Publish the finished runs' evaluation records of a sweep (both sides), byte for byte."""
+    with exit_on_error():
+        from leaderboard.reference_runs import REFERENCE_RUNS_DIR, publish_reference_runs
+
+        dest = to if to is not None else REFERENCE_RUNS_DIR
+        report = publish_reference_runs(sweep_out, dest, methods=method or (), replace=replace)
+        typer.echo(f"{dest}: wrote {len(report.written)} record(s), {len(report.unchanged)} already published "
+                   f"unchanged; {len(report.unfinished)} run(s) of the sweep not evaluated yet")
+        for path in report.written:
+            typer.echo(f"  {path}")
+
+
 @leaderboard_app.command("validate")
 def validate_command(
     files: Annotated[list[Path], typer.Argument(help="Submission files.")],
@@ -80,12 +102,19 @@ def build_command(
     out: Annotated[Path, typer.Option(help="Folder for leaderboard.md and index.html.")],
     store: StoreOption = _REPO_STORE,
     references: ReferencesOption = None,
+    reference_runs: Annotated[Optional[Path], typer.Option(
+        "--reference-runs", help="Published reference runs to show beside the submissions (default: the "
+                                 "repository's leaderboard/reference-runs).")] = None,
+    no_reference_runs: Annotated[bool, typer.Option(
+        "--no-reference-runs", help="Show the submissions only.")] = False,
 ) -> None:
     """Render the store into leaderboard.md (README table) and a static, self-contained index.html."""
     with exit_on_error():
+        from leaderboard.reference_runs import REFERENCE_RUNS_DIR
         from leaderboard.render import build_site
 
-        markdown, page = build_site(store, out, references=references)
+        runs = None if no_reference_runs else (reference_runs if reference_runs is not None else REFERENCE_RUNS_DIR)
+        markdown, page = build_site(store, out, references=references, reference_runs=runs)
         typer.echo(f"wrote {markdown} and {page}")
 
 

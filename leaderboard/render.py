@@ -11,9 +11,10 @@ import base64
 import html
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from leaderboard.reference_runs import ReferenceProgress
 from leaderboard.scores import Board, Entry, Interval, Normalization, performance_profile
 from leaderboard.store import write_file_atomic
 from offdyn_bench.errors import OffdynError
@@ -51,8 +52,62 @@ def _normalization_notes(board: Board) -> list[str]:
     return notes
 
 
-def render_markdown(board: Board) -> str:
-    """The README table: method, track, budget, IQM [95% CI], mean, optimality gap, per-task raw means."""
+_PROGRESS_HEADERS = ("task", "RL on source: source return", "RL on source: target return", "kept",
+                     "RL on target (oracle runs)", "RL on source, normalized", "P(oracle > RL on source)")
+_PROGRESS_NOTE = ("Not submissions: the published runs of the two reference points (`leaderboard/reference-runs`, "
+                  "RL on source evaluated on both sides of each task) while they do not yet cover the core suite. "
+                  "Returns are means over training seeds, their number in brackets; kept = target / source return; "
+                  "the normalized score and P(oracle > RL on source) use the task's oracle reference, '-' where "
+                  "it does not exist yet.")
+
+
+def _progress_cells(row: ReferenceProgress) -> list[tuple[str, str | float | None]]:
+    """(text, sort value) per column of a reference-progress row."""
+    def mean(values: Sequence[float]) -> tuple[str, float | None]:
+        if not values:
+            return "-", None
+        value = sum(values) / len(values)
+        return f"{value:.1f} ({len(values)})", value
+
+    def number(value: float | None, form: str = "{:.1f}") -> tuple[str, float | None]:
+        return ("-", None) if value is None else (form.format(value), value)
+
+    gap = row.rl_on_source
+    if gap is None:
+        source_side = [("-", None)] * 3 + [mean(row.oracle_seed_means)] + [("-", None)] * 2
+    else:
+        source_side = [mean(gap.source_seed_means), mean(gap.target_seed_means), number(gap.kept, "{:.2f}"),
+                       mean(row.oracle_seed_means), number(gap.normalized_target),
+                       number(gap.oracle_better_probability, "{:.2f}")]
+    return [(row.task, row.task), *source_side]
+
+
+def _progress_markdown(progress: Mapping[str, Sequence[ReferenceProgress]]) -> list[str]:
+    lines = []
+    for budget, rows in sorted(progress.items()):
+        lines += ["", f"## Reference runs so far (`{budget}`)", "", _PROGRESS_NOTE, "",
+                  "| " + " | ".join(_PROGRESS_HEADERS) + " |", "|---|" + "---:|" * (len(_PROGRESS_HEADERS) - 1)]
+        for row in rows:
+            lines.append("| " + " | ".join(_markdown_cell(text) for text, _ in _progress_cells(row)) + " |")
+    return lines
+
+
+def _progress_html(progress: Mapping[str, Sequence[ReferenceProgress]]) -> str:
+    parts = []
+    for budget, rows in sorted(progress.items()):
+        body = "".join("<tr>" + "".join(_cell(text, sort, is_text=index == 0)
+                                        for index, (text, sort) in enumerate(_progress_cells(row))) + "</tr>"
+                       for row in rows)
+        parts.append(f"<h2>Reference runs so far ({html.escape(budget)})</h2>"
+                     f'<p class="note">{html.escape(_PROGRESS_NOTE)}</p>'
+                     f'<table class="sortable" id="reference-runs-{html.escape(budget)}"><thead><tr>'
+                     f"{_header_row(_PROGRESS_HEADERS, text_columns=1)}</tr></thead><tbody>{body}</tbody></table>")
+    return "".join(parts)
+
+
+def render_markdown(board: Board, progress: Mapping[str, Sequence[ReferenceProgress]] | None = None) -> str:
+    """The README table: method, track, budget, IQM [95% CI], mean, optimality gap, per-task raw means;
+    then, with ``progress``, the reference runs published so far."""
     from offdyn_bench import protocol
 
     lines = [f"Protocol {protocol.PROTOCOL_VERSION}; {len(board.entries)} submission(s). Scores are normalized "
@@ -72,6 +127,7 @@ def render_markdown(board: Board) -> str:
         lines.append("| " + " | ".join(_markdown_cell(c) for c in cells) + " |")
     lines.append("")
     lines.extend(f"- {_markdown_cell(note)}" for note in _normalization_notes(board))
+    lines.extend(_progress_markdown(progress or {}))
     return "\n".join(lines) + "\n"
 
 
@@ -306,7 +362,7 @@ def _normalization_html(normalizations: Sequence[Normalization], task_count: int
     return f'<ul class="note">{"".join(items)}</ul>' if items else ""
 
 
-def render_html(board: Board) -> str:
+def render_html(board: Board, progress: Mapping[str, Sequence[ReferenceProgress]] | None = None) -> str:
     from offdyn_bench import protocol
 
     normalizations = [board.normalizations[b] for b in sorted(board.normalizations)]
@@ -342,6 +398,7 @@ mean in parentheses where the task has both references.</p>
 <p class="note">P(X &gt; Y): the probability that a run of the row's method beats a run of the column's
 method on a task drawn uniformly from the scored tasks (ties count 1/2), with its 95% interval.</p>
 {_improvement_tables(board)}
+{_progress_html(progress or {})}
 <h2>Performance profiles</h2>
 {profile_html}
 <h2>Learning curves</h2>
@@ -352,13 +409,18 @@ method on a task drawn uniformly from the scored tasks (ties count 1/2), with it
 """
 
 
-def build_site(store: Path, out: Path, *, references: Path | None = None) -> tuple[Path, Path]:
-    """Render ``store`` into ``out/leaderboard.md`` and ``out/index.html``; both written atomically."""
+def build_site(store: Path, out: Path, *, references: Path | None = None,
+               reference_runs: Path | None = None) -> tuple[Path, Path]:
+    """Render ``store`` into ``out/leaderboard.md`` and ``out/index.html``; both written atomically.
+    ``reference_runs`` (e.g. the repository's ``leaderboard/reference-runs``) adds the reference runs
+    published so far."""
+    from leaderboard.reference_runs import reference_progress
     from leaderboard.scores import score_board
     from leaderboard.store import load_store
 
     board = score_board(load_store(store), references=references)
-    markdown, page = render_markdown(board), render_html(board)
+    progress = reference_progress(reference_runs, references=references) if reference_runs is not None else None
+    markdown, page = render_markdown(board, progress), render_html(board, progress)
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_file_atomic(out / "leaderboard.md", markdown.encode())

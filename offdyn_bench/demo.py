@@ -174,12 +174,14 @@ def demo_score(out: pathlib.Path, run_dirs: list[pathlib.Path]) -> None:
 
 
 def demo_leaderboard(out: pathlib.Path) -> None:
+    from leaderboard.reference_runs import REFERENCE_RUNS_DIR
     from leaderboard.render import build_site
     from leaderboard.store import DEFAULT_STORE
 
-    typer.echo("\n== 7. The leaderboard page, from the submissions in leaderboard/submissions/")
+    typer.echo("\n== 7. The leaderboard page, from the submissions in leaderboard/submissions/ and the reference "
+               "runs published so far in leaderboard/reference-runs/")
     typer.echo(f"   (offdyn-bench leaderboard build --out {out / 'leaderboard'})")
-    written = build_site(DEFAULT_STORE, out / "leaderboard")
+    written = build_site(DEFAULT_STORE, out / "leaderboard", reference_runs=REFERENCE_RUNS_DIR)
     typer.echo(f"   wrote {', '.join(str(p) for p in written)}")
 
 

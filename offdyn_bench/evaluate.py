@@ -51,6 +51,8 @@ from offdyn_bench.protocol.definition import (
 )
 
 EVALUATION_FILE = "evaluation.json"
+SOURCE_SIDE_NOTE = "evaluated in the source, not the target (the source-target gap)"
+"""The note of a source-side record: its only departure from the protocol when evaluated as it prescribes."""
 FORMAT = "offdyn-bench/evaluation"
 
 
@@ -366,7 +368,7 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
     assert task is not None
     track, budget, notes = _conformance(loaded, task, track, budget, episodes)
     if side == "source":
-        notes.append("evaluated in the source, not the target (the source-target gap)")
+        notes.append(SOURCE_SIDE_NOTE)
     trained_task = loaded.description.get("trained_task", task)
     target = pathlib.Path(out) if out is not None else (
         default_evaluation_path(agent_path, str(trained_task), task, side) if is_run else None)

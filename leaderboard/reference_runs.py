@@ -1,0 +1,172 @@
+"""The reference methods' runs, published in the repository record by record as a sweep finishes them.
+
+A leaderboard submission needs every core-suite task, and the reference methods' lite runs take
+days of CPU. Until a method's submission is complete, and afterwards as the evidence behind it and
+behind PROTOCOL.md's tables, the raw evaluation records of its finished runs are kept under
+``leaderboard/reference-runs/<budget>/<method>/<task>/<seed label>/`` as ``evaluation.json`` (the
+target) and ``evaluation-source.json`` (RL on source's other side). That is a sweep's own layout
+(``<out>/runs/...``), so every command that reads a sweep reads them unchanged: ``protocol gap``,
+``protocol score``, ``protocol claims`` and ``protocol reference oracle``.
+
+Publishing copies the records byte for byte (their sha256 stays the evaluation's) and only records
+that score under the protocol: complete, finite, at a protocol budget, in the folder that names
+their method, task, seeds and side. Everything is checked before anything is written, and a
+published record is never replaced by different bytes unless asked: published numbers do not
+change silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from leaderboard.assemble import read_evaluation
+from leaderboard.store import write_file_atomic
+from leaderboard.submission import SubmissionError
+from offdyn_bench.errors import OffdynError
+
+REFERENCE_RUNS_DIR = Path(__file__).resolve().parent / "reference-runs"
+RECORD_FILES = {"evaluation.json": "target", "evaluation-source.json": "source"}
+"""A run folder's record files and the side each holds (the sweep's names)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PublishReport:
+    written: tuple[Path, ...]
+    """Records new to the destination, or replaced (``replace=True``)."""
+    unchanged: tuple[Path, ...]
+    """Records the destination already holds, byte for byte."""
+    unfinished: tuple[Path, ...]
+    """Run folders of the sweep without a target record yet (training or never started)."""
+
+
+def _seed_label(seeds: Sequence[int]) -> str:
+    # The sweep's folder names (offdyn_bench.sweep.runs.seed_label), without importing the sweep.
+    return f"seed-{seeds[0]}" if len(seeds) == 1 else f"seeds-{seeds[0]}-{seeds[-1]}"
+
+
+def check_reference_record(path: Path, record: dict[str, Any], method: str, task: str, label: str,
+                           side: str) -> None:
+    """Raise :class:`SubmissionError` unless ``record`` (read from ``path``) is a complete protocol
+    evaluation of ``method`` on ``task``, seeds ``label``, on ``side``."""
+    from offdyn_bench.evaluate import SOURCE_SIDE_NOTE
+    from offdyn_bench.protocol import EVAL_EPISODES, get_budget
+
+    def fail(what: str) -> SubmissionError:
+        return SubmissionError(f"{path}: {what}")
+
+    if record.get("method") != method or record.get("task") != task:
+        raise fail(f"holds {record.get('method')!r} on {record.get('task')!r}, but its folder names {method!r} on "
+                   f"{task!r}; publish a sweep's runs folder as it is")
+    if record.get("side", "target") != side:
+        raise fail(f"side {record.get('side')!r}; the file name says {side!r}")
+    budget = record.get("budget")
+    try:
+        get_budget(str(budget))
+    except OffdynError:
+        raise fail(f"budget {budget!r}; only runs at a protocol budget (lite, full) are reference runs") from None
+    # A source-side record is no protocol result by design; it must depart in nothing else.
+    notes = [note for note in record.get("notes") or [] if not (side == "source" and note == SOURCE_SIDE_NOTE)]
+    if notes or (side == "target" and record.get("protocol_conformant") is not True):
+        raise fail(f"not a protocol evaluation ({'; '.join(map(str, notes)) or 'not marked conformant'})")
+    seeds = record.get("seeds")
+    if not isinstance(seeds, list) or not seeds or not all(isinstance(s, dict) for s in seeds):
+        raise fail("no per-seed returns")
+    numbers = [s.get("seed") for s in seeds]
+    if not all(isinstance(n, int) for n in numbers) or _seed_label(sorted(numbers)) != label:
+        raise fail(f"seeds {numbers}; its folder {label!r} names others")
+    for entry in seeds:
+        returns = entry.get("returns")
+        if not isinstance(returns, list) or len(returns) < EVAL_EPISODES:
+            raise fail(f"seed {entry['seed']}: {len(returns) if isinstance(returns, list) else 'no'} episodes; "
+                       f"the protocol scores at least {EVAL_EPISODES}")
+        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in returns):
+            raise fail(f"seed {entry['seed']}: a return that is not a finite number")
+
+
+def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, methods: Sequence[str] = (),
+                           replace: bool = False) -> PublishReport:
+    """Copy the finished runs' records of the sweep in ``sweep_out`` (its ``runs/`` folder) into
+    ``dest/<budget>/...``; ``methods``: only these (default every method there)."""
+    runs = sweep_out / "runs"
+    if not runs.is_dir():
+        raise SubmissionError(f"{sweep_out}: no runs/ folder; expected the out folder of `offdyn-bench sweep`")
+    folders = sorted(path for path in runs.glob("*/*/*") if path.is_dir())
+    if methods:
+        present = {folder.parts[-3] for folder in folders}
+        unknown = [method for method in methods if method not in present]
+        if unknown:
+            raise SubmissionError(f"{sweep_out}: no runs of {', '.join(unknown)}; it has runs of "
+                                  f"{', '.join(sorted(present)) or 'no method'}")
+        folders = [folder for folder in folders if folder.parts[-3] in methods]
+    plan: list[tuple[Path, Path, bytes]] = []
+    unfinished = []
+    for folder in folders:
+        method, task, label = folder.parts[-3:]
+        if not (folder / "evaluation.json").exists():
+            unfinished.append(folder)
+            continue
+        for name, side in RECORD_FILES.items():
+            path = folder / name
+            if not path.exists():
+                continue
+            record = read_evaluation(path)
+            check_reference_record(path, record, method, task, label, side)
+            plan.append((path, dest / str(record["budget"]) / method / task / label / name, path.read_bytes()))
+    if not plan:
+        raise SubmissionError(f"{sweep_out}: no finished run to publish ({len(unfinished)} unfinished)")
+    written, unchanged, conflicts = [], [], []
+    for source, target, data in plan:
+        if target.exists():
+            if target.read_bytes() == data:
+                unchanged.append(target)
+                continue
+            if not replace:
+                conflicts.append(f"{target} (from {source})")
+                continue
+        written.append(target)
+    if conflicts:
+        raise SubmissionError(f"{len(conflicts)} published record(s) differ from the sweep's: {conflicts[0]}"
+                              + (f" and {len(conflicts) - 1} more" if len(conflicts) > 1 else "")
+                              + "; published numbers change only with --replace")
+    data_of = {target: data for _, target, data in plan}
+    for target in written:
+        write_file_atomic(target, data_of[target])
+    return PublishReport(tuple(written), tuple(unchanged), tuple(unfinished))
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceProgress:
+    """One core task's published reference runs at one budget: RL on source on both sides (its gap,
+    against the oracle reference) and the oracle runs (RL on target)."""
+
+    task: str
+    rl_on_source: Any | None
+    """The task's :class:`offdyn_bench.protocol.gap.TaskGap` for ``sac-source``; None: no runs yet."""
+    oracle_seed_means: tuple[float, ...]
+    """Per published ``sac-target`` seed, its mean target return."""
+
+
+def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | None = None
+                       ) -> dict[str, list[ReferenceProgress]]:
+    """Per budget published under ``root``, a row for every core-suite task (empty where nothing is
+    published yet): what the reference submissions will hold, as far as it exists."""
+    from offdyn_bench.protocol import CORE_SUITE
+    from offdyn_bench.protocol.gap import measure_gaps
+
+    progress = {}
+    for budget_dir in sorted(path for path in root.glob("*") if path.is_dir()):
+        source_records = [read_evaluation(path) for path in sorted(budget_dir.glob("sac-source/*/*/evaluation*.json"))]
+        gaps = {gap.task: gap for gap in measure_gaps(source_records, str(references) if references else None)} \
+            if source_records else {}
+        oracle: dict[str, list[float]] = {}
+        for path in sorted(budget_dir.glob("sac-target/*/*/evaluation.json")):
+            record = read_evaluation(path)
+            for seed in record["seeds"]:
+                oracle.setdefault(record["task"], []).append(sum(seed["returns"]) / len(seed["returns"]))
+        progress[budget_dir.name] = [ReferenceProgress(task, gaps.get(task), tuple(oracle.get(task, ())))
+                                     for task in CORE_SUITE]
+    return progress

@@ -1,0 +1,251 @@
+"""The published reference runs: every record there scores under the protocol, the numbers the
+repository publishes from them (the oracle references, PROTOCOL.md's gap table) are recomputed from
+them, and publishing refuses what is not a finished protocol evaluation without writing anything."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from leaderboard.reference_runs import REFERENCE_RUNS_DIR, RECORD_FILES, check_reference_record, publish_reference_runs
+from leaderboard.submission import SubmissionError
+
+REPO = Path(__file__).resolve().parents[2]
+PUBLISHED = sorted(REFERENCE_RUNS_DIR.glob("*/*/*/*/evaluation*.json"))
+
+
+def _parts(path: Path) -> tuple[str, str, str, str, str]:
+    budget, method, task, label, name = path.relative_to(REFERENCE_RUNS_DIR).parts
+    return budget, method, task, label, name
+
+
+def _records(method: str, task: str | None = None, name: str | None = None) -> list[dict]:
+    return [json.loads(path.read_text()) for path in PUBLISHED
+            if _parts(path)[1] == method and task in (None, _parts(path)[2]) and name in (None, _parts(path)[4])]
+
+
+def test_the_repository_publishes_reference_runs_of_both_reference_methods():
+    methods = {_parts(path)[1] for path in PUBLISHED}
+    assert {"sac-source", "sac-target"} <= methods
+    # RL on source is published with both sides of each task it has a target record of.
+    for path in PUBLISHED:
+        if _parts(path)[1] == "sac-source" and path.name == "evaluation.json":
+            assert (path.parent / "evaluation-source.json").exists(), path
+
+
+@pytest.mark.parametrize("path", PUBLISHED, ids=lambda p: str(p.relative_to(REFERENCE_RUNS_DIR)))
+def test_every_published_record_is_a_complete_protocol_evaluation_where_it_lies(path):
+    budget, method, task, label, name = _parts(path)
+    record = json.loads(path.read_text())
+    check_reference_record(path, record, method, task, label, RECORD_FILES[name])
+    assert record["budget"] == budget and record["protocol_version"] == "1.0"
+
+
+def test_the_shipped_oracle_references_are_the_published_sac_target_runs():
+    """assets/reference_scores.json's lite oracles, recomputed from the published records: the same
+    mean, the same per-seed means, and the same policies (sha256)."""
+    scores = json.loads((REPO / "assets" / "reference_scores.json").read_text())["tasks"]
+    oracles = {task: entry["oracle"]["lite"] for task, entry in scores.items() if "lite" in entry.get("oracle", {})}
+    assert len(oracles) >= 5
+    for task, oracle in oracles.items():
+        records = sorted(_records("sac-target", task, "evaluation.json"), key=lambda r: r["seeds"][0]["seed"])
+        assert [r["seeds"][0]["seed"] for r in records] == oracle["provenance"]["seeds"], task
+        returns = [x for record in records for x in record["seeds"][0]["returns"]]
+        assert returns == oracle["returns"], task
+        assert sum(returns) / len(returns) == pytest.approx(oracle["mean_return"], rel=1e-12), task
+        shipped = {run["path"].rsplit("/", 1)[-1]: run["policy_sha256"] for run in oracle["provenance"]["runs"]}
+        for record in records:
+            assert record["agent"]["policy_sha256"] == shipped[f"seed-{record['seeds'][0]['seed']}"], task
+
+
+def _protocol_gap_rows() -> dict[str, tuple[str, ...]]:
+    """PROTOCOL.md §9's gap table: task -> its cells after the task."""
+    text = (REPO / "PROTOCOL.md").read_text()
+    section = text[text.index("## 9."):]
+    table = section[section.index("| task | RL on source, source / target return |"):]
+    rows = {}
+    for line in table.splitlines()[2:]:
+        line = line.strip()  # the table is indented inside a list item
+        if not line.startswith("| `"):
+            break
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        rows[cells[0].strip("`")] = tuple(cells[1:])
+    return rows
+
+
+def test_protocol_md_gap_table_is_what_protocol_gap_computes_from_the_published_runs():
+    from offdyn_bench.protocol.gap import measure_gaps
+
+    rows = _protocol_gap_rows()
+    assert len(rows) >= 5
+    gaps = {gap.task: gap for gap in measure_gaps(_records("sac-source"))}
+    for task, cells in rows.items():
+        gap = gaps[task]
+        seeds = len(gap.target_seed_means)
+        assert len(gap.source_seed_means) == seeds, task
+        assert cells == (f"{gap.source_return:.1f} / {gap.target_return:.1f}", f"{gap.kept:.2f}",
+                         f"{gap.normalized_target:.1f}", f"{gap.oracle_better_probability:.2f}"), task
+    # The text says over how many seeds the table is.
+    counts = {len(gaps[task].target_seed_means) for task in rows}
+    assert len(counts) == 1
+    assert f"over {counts.pop()} `sac-source` lite seeds" in (REPO / "PROTOCOL.md").read_text()
+
+
+# Publishing: a sweep's out folder, here built from the published records themselves.
+
+
+@pytest.fixture
+def sweep_out(tmp_path) -> Path:
+    out = tmp_path / "sweep"
+    for path in PUBLISHED:
+        if _parts(path)[2].startswith("hopper-gravity"):
+            _, method, task, label, name = _parts(path)
+            target = out / "runs" / method / task / label / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, target)
+    (out / "runs" / "sac-target" / "hopper-gravity-0.5" / "seed-9").mkdir()  # still training
+    return out
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()} \
+        if root.exists() else {}
+
+
+def test_publishing_copies_records_byte_for_byte_and_again_changes_nothing(sweep_out, tmp_path):
+    dest = tmp_path / "published"
+    report = publish_reference_runs(sweep_out, dest)
+    assert len(report.written) == sum(1 for p in PUBLISHED if _parts(p)[2].startswith("hopper-gravity"))
+    assert report.unfinished == (sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5" / "seed-9",)
+    for path in report.written:
+        _, method, task, label, name = path.relative_to(dest).parts
+        assert path.read_bytes() == (sweep_out / "runs" / method / task / label / name).read_bytes()
+        assert path.read_bytes() == (REFERENCE_RUNS_DIR / "lite" / method / task / label / name).read_bytes()
+    again = publish_reference_runs(sweep_out, dest)
+    assert again.written == () and sorted(again.unchanged) == sorted(report.written)
+    only = publish_reference_runs(sweep_out, tmp_path / "only-target", methods=["sac-target"])
+    assert {p.relative_to(tmp_path / "only-target").parts[1] for p in only.written} == {"sac-target"}
+
+
+def test_a_published_number_changes_only_when_asked(sweep_out, tmp_path):
+    dest = tmp_path / "published"
+    publish_reference_runs(sweep_out, dest)
+    before = _tree(dest)
+    record_path = sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5" / "seed-0" / "evaluation.json"
+    record = json.loads(record_path.read_text())
+    record["seeds"][0]["returns"][0] += 1.0
+    record_path.write_text(json.dumps(record, indent=1))
+    with pytest.raises(SubmissionError, match=r"1 published record\(s\) differ from the sweep's: .*seed-0/"
+                                              r"evaluation.json .*published numbers change only with --replace"):
+        publish_reference_runs(sweep_out, dest)
+    assert _tree(dest) == before
+    report = publish_reference_runs(sweep_out, dest, replace=True)
+    assert len(report.written) == 1 and json.loads(report.written[0].read_text()) == record
+
+
+def _break(sweep_out: Path, change) -> Path:
+    path = sweep_out / "runs" / "sac-source" / "hopper-gravity-0.5" / "seed-1" / "evaluation.json"
+    record = json.loads(path.read_text())
+    text = change(record)
+    path.write_text(text if isinstance(text, str) else json.dumps(record))
+    return path
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda r: r.update(task="hopper-friction-0.5"),
+     r"holds 'sac-source' on 'hopper-friction-0.5', but its folder names 'sac-source' on 'hopper-gravity-0.5'"),
+    (lambda r: r.update(side="source"), r"side 'source'; the file name says 'target'"),
+    (lambda r: r.update(budget=None), r"budget None; only runs at a protocol budget"),
+    (lambda r: r.update(protocol_conformant=False, notes=["trained for 300 steps, not at a protocol budget"]),
+     r"not a protocol evaluation \(trained for 300 steps"),
+    (lambda r: r["seeds"][0].update(seed=7), r"seeds \[7\]; its folder 'seed-1' names others"),
+    (lambda r: r["seeds"][0].update(returns=r["seeds"][0]["returns"][:5]), r"seed 1: 5 episodes; the protocol "
+                                                                             r"scores at least 20"),
+    (lambda r: r["seeds"][0]["returns"].__setitem__(3, "1e999"), r"seed 1: a return that is not a finite number"),
+    (lambda r: json.dumps(r).replace('"returns": [', '"returns": [NaN, ', 1), r"NaN is not valid JSON"),
+    (lambda r: "{not json", r"not valid JSON: Expecting property name"),
+])
+def test_publishing_refuses_what_is_not_a_finished_protocol_evaluation_and_writes_nothing(
+        sweep_out, tmp_path, change, message):
+    dest = tmp_path / "published"
+    broken = _break(sweep_out, change)
+    with pytest.raises(SubmissionError, match=message) as caught:
+        publish_reference_runs(sweep_out, dest)
+    assert str(broken) in str(caught.value)
+    assert not dest.exists()
+
+
+def test_publishing_refuses_a_folder_that_is_not_a_sweep_and_an_absent_method(sweep_out, tmp_path):
+    with pytest.raises(SubmissionError, match=r"no runs/ folder; expected the out folder of `offdyn-bench sweep`"):
+        publish_reference_runs(tmp_path / "nowhere", tmp_path / "published")
+    with pytest.raises(SubmissionError, match=r"no runs of dap; it has runs of sac-source, sac-target"):
+        publish_reference_runs(sweep_out, tmp_path / "published", methods=["dap"])
+    assert not (tmp_path / "published").exists()
+
+
+def test_the_command_line_publishes_and_reports(sweep_out, tmp_path):
+    from typer.testing import CliRunner
+
+    from offdyn_bench.cli import app
+
+    dest = tmp_path / "published"
+    result = CliRunner().invoke(app, ["leaderboard", "publish-runs", str(sweep_out), "--to", str(dest)])
+    assert result.exit_code == 0, result.output
+    written = len(list(dest.rglob("*.json")))
+    assert f"wrote {written} record(s), 0 already published unchanged; 1 run(s) of the sweep not evaluated yet" \
+        in result.output
+    result = CliRunner().invoke(app, ["leaderboard", "publish-runs", str(tmp_path), "--to", str(dest)])
+    assert result.exit_code == 2 and "no runs/ folder" in result.output
+
+
+def test_the_leaderboard_shows_the_published_reference_runs_row_by_row(sweep_out, tmp_path):
+    """Built twice from the same published runs: the same bytes, and one row per core task with the
+    numbers `protocol gap` gives (and '-' where nothing is published yet)."""
+    from leaderboard.render import build_site
+    from offdyn_bench.protocol import CORE_SUITE
+    from offdyn_bench.protocol.gap import measure_gaps
+
+    published = tmp_path / "published"
+    publish_reference_runs(sweep_out, published)
+    store = tmp_path / "store"
+    store.mkdir()
+    first = build_site(store, tmp_path / "one", reference_runs=published)
+    second = build_site(store, tmp_path / "two", reference_runs=published)
+    assert [p.read_bytes() for p in first] == [p.read_bytes() for p in second]
+    markdown = first[0].read_text()
+    section = markdown[markdown.index("## Reference runs so far (`lite`)"):]
+    rows = {line.split(" | ")[0].strip("| "): line for line in section.splitlines() if line.startswith("| ")}
+    assert set(CORE_SUITE) <= set(rows)
+    records = [json.loads(p.read_text()) for p in sorted(published.glob("lite/sac-source/*/*/evaluation*.json"))]
+    (gap,) = measure_gaps(records)
+    oracle = [json.loads(p.read_text()) for p in sorted(published.glob("lite/sac-target/*/*/evaluation.json"))]
+    oracle_means = [sum(r["seeds"][0]["returns"]) / len(r["seeds"][0]["returns"]) for r in oracle]
+    assert rows[gap.task] == (
+        f"| {gap.task} | {gap.source_return:.1f} ({len(gap.source_seed_means)}) | {gap.target_return:.1f} "
+        f"({len(gap.target_seed_means)}) | {gap.kept:.2f} | {sum(oracle_means) / len(oracle_means):.1f} "
+        f"({len(oracle_means)}) | {gap.normalized_target:.1f} | {gap.oracle_better_probability:.2f} |")
+    assert rows["ant-friction-5.0"] == "| ant-friction-5.0 | - | - | - | - | - | - |"
+    page = first[1].read_text()
+    assert '<table class="sortable" id="reference-runs-lite">' in page and "Reference runs so far (lite)" in page
+    # The page without them: no such section.
+    bare = build_site(store, tmp_path / "bare")
+    assert "Reference runs so far" not in bare[0].read_text() + bare[1].read_text()
+
+
+def test_leaderboard_build_shows_the_repositorys_reference_runs_unless_told_not_to(tmp_path):
+    from typer.testing import CliRunner
+
+    from offdyn_bench.cli import app
+
+    store = tmp_path / "store"
+    store.mkdir()
+    shown = CliRunner().invoke(app, ["leaderboard", "build", "--out", str(tmp_path / "a"), "--store", str(store)])
+    assert shown.exit_code == 0, shown.output
+    assert "## Reference runs so far (`lite`)" in (tmp_path / "a" / "leaderboard.md").read_text()
+    hidden = CliRunner().invoke(app, ["leaderboard", "build", "--out", str(tmp_path / "b"), "--store", str(store),
+                                      "--no-reference-runs"])
+    assert hidden.exit_code == 0, hidden.output
+    assert "Reference runs so far" not in (tmp_path / "b" / "leaderboard.md").read_text()
