@@ -162,8 +162,8 @@ def _break(sweep_out: Path, change) -> Path:
     (lambda r: r.update(protocol_conformant=False, notes=["trained for 300 steps, not at a protocol budget"]),
      r"not a protocol evaluation \(trained for 300 steps"),
     (lambda r: r["seeds"][0].update(seed=7), r"seeds \[7\]; its folder 'seed-1' names others"),
-    (lambda r: r["seeds"][0].update(returns=r["seeds"][0]["returns"][:5]), r"seed 1: 5 episodes; the protocol "
-                                                                             r"scores at least 20"),
+    (lambda r: r["seeds"][0].update(returns=r["seeds"][0]["returns"][:5]),
+     r"seed 1: 5 episodes; the protocol scores at least 20"),
     (lambda r: r["seeds"][0]["returns"].__setitem__(3, "1e999"), r"seed 1: a return that is not a finite number"),
     (lambda r: json.dumps(r).replace('"returns": [', '"returns": [NaN, ', 1), r"NaN is not valid JSON"),
     (lambda r: "{not json", r"not valid JSON: Expecting property name"),
