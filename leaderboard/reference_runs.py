@@ -157,14 +157,26 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
     from offdyn_bench.protocol import CORE_SUITE
     from offdyn_bench.protocol.gap import measure_gaps
 
+    if not root.is_dir():
+        raise SubmissionError(f"{root}: not a folder; expected published reference runs "
+                              "(<budget>/<method>/<task>/<seeds>/evaluation.json, as publish-runs writes them)")
+
+    def read_checked(path: Path) -> dict[str, Any]:
+        # Published files are checked again where they are read: a hand edit is refused, not rendered.
+        method, task, label, name = path.relative_to(budget_dir).parts
+        record = read_evaluation(path)
+        check_reference_record(path, record, method, task, label, RECORD_FILES[name])
+        return record
+
     progress = {}
     for budget_dir in sorted(path for path in root.glob("*") if path.is_dir()):
-        source_records = [read_evaluation(path) for path in sorted(budget_dir.glob("sac-source/*/*/evaluation*.json"))]
+        source_records = [read_checked(path) for path in sorted(budget_dir.glob("sac-source/*/*/evaluation*.json"))
+                          if path.name in RECORD_FILES]
         gaps = {gap.task: gap for gap in measure_gaps(source_records, str(references) if references else None)} \
             if source_records else {}
         oracle: dict[str, list[float]] = {}
         for path in sorted(budget_dir.glob("sac-target/*/*/evaluation.json")):
-            record = read_evaluation(path)
+            record = read_checked(path)
             for seed in record["seeds"]:
                 oracle.setdefault(record["task"], []).append(sum(seed["returns"]) / len(seed["returns"]))
         progress[budget_dir.name] = [ReferenceProgress(task, gaps.get(task), tuple(oracle.get(task, ())))

@@ -249,3 +249,22 @@ def test_leaderboard_build_shows_the_repositorys_reference_runs_unless_told_not_
                                       "--no-reference-runs"])
     assert hidden.exit_code == 0, hidden.output
     assert "Reference runs so far" not in (tmp_path / "b" / "leaderboard.md").read_text()
+
+
+def test_the_leaderboard_refuses_published_runs_it_cannot_trust(sweep_out, tmp_path):
+    from leaderboard.render import build_site
+
+    store = tmp_path / "store"
+    store.mkdir()
+    with pytest.raises(SubmissionError, match=r"not a folder; expected published reference runs"):
+        build_site(store, tmp_path / "site", reference_runs=tmp_path / "absent")
+    published = tmp_path / "published"
+    publish_reference_runs(sweep_out, published)
+    edited = published / "lite" / "sac-target" / "hopper-gravity-0.5" / "seed-2" / "evaluation.json"
+    record = json.loads(edited.read_text())
+    del record["seeds"][0]["returns"][4:]
+    edited.write_text(json.dumps(record))
+    with pytest.raises(SubmissionError, match=r"seed-2/evaluation.json: seed 2: 4 episodes; the protocol scores "
+                                              r"at least 20"):
+        build_site(store, tmp_path / "site", reference_runs=published)
+    assert not (tmp_path / "site").exists()
