@@ -82,6 +82,8 @@ def publish_runs_command(
                    f"unchanged; {len(report.unfinished)} run(s) of the sweep not evaluated yet")
         for path in report.written:
             typer.echo(f"  {path}")
+        for path in report.compute:
+            typer.echo(f"compute per run: {path}")
 
 
 @leaderboard_app.command("validate")

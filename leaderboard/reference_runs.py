@@ -18,6 +18,7 @@ change silently.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -41,6 +42,8 @@ class PublishReport:
     """Records the destination already holds, byte for byte."""
     unfinished: tuple[Path, ...]
     """Run folders of the sweep without a target record yet (training or never started)."""
+    compute: tuple[Path, ...] = ()
+    """The ``compute.json`` files updated with the published runs' compute (from the sweep's state)."""
 
 
 def _seed_label(seeds: Sequence[int]) -> str:
@@ -132,10 +135,68 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
         raise SubmissionError(f"{len(conflicts)} published record(s) differ from the sweep's: {conflicts[0]}"
                               + (f" and {len(conflicts) - 1} more" if len(conflicts) > 1 else "")
                               + "; published numbers change only with --replace")
+    # The compute files are prepared before anything is written: a bad state file changes nothing.
+    state = _sweep_state(sweep_out)
+    compute = _compute_documents(state, [target for _, target, _ in plan]) if state is not None else {}
     data_of = {target: data for _, target, data in plan}
     for target in written:
         write_file_atomic(target, data_of[target])
-    return PublishReport(tuple(written), tuple(unchanged), tuple(unfinished))
+    for path, document in compute.items():
+        write_file_atomic(path, (json.dumps(document, indent=1) + "\n").encode())
+    return PublishReport(tuple(written), tuple(unchanged), tuple(unfinished), tuple(compute))
+
+
+COMPUTE_FILE = "compute.json"
+_ATTEMPT_FIELDS = ("attempt", "ok", "stage", "wall_time_s", "cpu_time_s", "host")
+
+
+def _sweep_state(sweep_out: Path) -> dict[str, Any] | None:
+    """The run records of the sweep's state file (``sweep.json``); None where there is none (runs
+    made without a sweep)."""
+    state_path = sweep_out / "sweep.json"
+    if not state_path.exists():
+        return None
+    try:
+        runs = json.loads(state_path.read_text())["runs"]
+        if not isinstance(runs, dict):
+            raise TypeError("its runs are not a mapping")
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
+        raise SubmissionError(f"{state_path}: not a sweep state file ({error!s}); nothing was published") from None
+    return runs
+
+
+def _compute_documents(runs: dict[str, Any], published: Sequence[Path]) -> dict[Path, dict[str, Any]]:
+    """Per budget folder, its ``compute.json`` updated with the published runs: per run (keyed
+    ``method/task/seeds``), the compute its attempts took as the sweep's state file holds it. A run
+    that scores another run's policy (RL on source on a second task) shows its evaluations only;
+    the training is the other run's."""
+    by_budget: dict[Path, dict[str, Any]] = {}
+    for target in published:
+        budget_dir = target.parents[3]
+        run_id = "/".join(target.parent.relative_to(budget_dir).parts)
+        record = runs.get(run_id)
+        if not isinstance(record, dict) or record.get("status") != "done":
+            continue
+        history = [{key: attempt.get(key) for key in _ATTEMPT_FIELDS}
+                   for attempt in record.get("history") or [] if isinstance(attempt, dict)]
+        by_budget.setdefault(budget_dir, {})[run_id] = {
+            "attempts_started": record.get("attempts"), "wall_time_s": record.get("wall_time_s"),
+            "cpu_time_s": record.get("cpu_time_s"), "recorded_attempts": history}
+    documents = {}
+    for budget_dir, entries in sorted(by_budget.items()):
+        path = budget_dir / COMPUTE_FILE
+        stored: dict[str, Any] = {}
+        if path.exists():
+            try:
+                stored = json.loads(path.read_text())["runs"]
+            except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
+                raise SubmissionError(f"{path}: unreadable ({error}); move it away to record compute anew") from None
+        documents[path] = {
+            "format": "offdyn-bench/reference-compute", "format_version": 1,
+            "note": "Per run, from the sweep's state file: wall and CPU time summed over the attempts it recorded "
+                    "(an attempt cut short by a killed sweep has no outcome and is not counted).",
+            "runs": dict(sorted((stored | entries).items()))}
+    return documents
 
 
 @dataclasses.dataclass(frozen=True)

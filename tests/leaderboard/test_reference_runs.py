@@ -268,3 +268,42 @@ def test_the_leaderboard_refuses_published_runs_it_cannot_trust(sweep_out, tmp_p
                                               r"at least 20"):
         build_site(store, tmp_path / "site", reference_runs=published)
     assert not (tmp_path / "site").exists()
+
+
+def _state(runs: dict) -> str:
+    return json.dumps({"format": "offdyn-bench/sweep-state", "format_version": 1, "runs": runs})
+
+
+def _attempt(number: int, wall: float, cpu: float) -> dict:
+    return {"attempt": number, "ok": True, "stage": "check", "exit_code": None, "error": None,
+            "wall_time_s": wall, "cpu_time_s": cpu, "host": "vm", "mean_return": 1.0}
+
+
+def test_publishing_records_each_runs_compute_from_the_sweeps_state(sweep_out, tmp_path):
+    done = {"status": "done", "attempts": 3, "wall_time_s": 1300.0, "cpu_time_s": 1250.0,
+            "history": [_attempt(2, 100.0, 50.0), _attempt(3, 1200.0, 1200.0)]}
+    (sweep_out / "sweep.json").write_text(_state({
+        "sac-target/hopper-gravity-0.5/seed-0": done,
+        "sac-target/hopper-gravity-0.5/seed-9": {"status": "pending", "attempts": 1, "history": []}}))
+    dest = tmp_path / "published"
+    report = publish_reference_runs(sweep_out, dest)
+    assert report.compute == (dest / "lite" / "compute.json",)
+    compute = json.loads(report.compute[0].read_text())
+    assert list(compute["runs"]) == ["sac-target/hopper-gravity-0.5/seed-0"]  # the published, finished run only
+    entry = compute["runs"]["sac-target/hopper-gravity-0.5/seed-0"]
+    assert entry["attempts_started"] == 3 and entry["wall_time_s"] == 1300.0 and entry["cpu_time_s"] == 1250.0
+    assert [a["attempt"] for a in entry["recorded_attempts"]] == [2, 3]
+    assert set(entry["recorded_attempts"][0]) == {"attempt", "ok", "stage", "wall_time_s", "cpu_time_s", "host"}
+    # A later sweep state adds its runs and keeps the ones recorded before.
+    (sweep_out / "sweep.json").write_text(_state({"sac-target/hopper-gravity-0.5/seed-1": done}))
+    publish_reference_runs(sweep_out, dest)
+    runs = json.loads(report.compute[0].read_text())["runs"]
+    assert list(runs) == ["sac-target/hopper-gravity-0.5/seed-0", "sac-target/hopper-gravity-0.5/seed-1"]
+
+
+def test_a_broken_sweep_state_publishes_nothing(sweep_out, tmp_path):
+    (sweep_out / "sweep.json").write_text('{"runs": [1, 2]}')
+    with pytest.raises(SubmissionError, match=r"sweep.json: not a sweep state file \(its runs are not a mapping\); "
+                                              r"nothing was published"):
+        publish_reference_runs(sweep_out, tmp_path / "published")
+    assert not (tmp_path / "published").exists()
