@@ -349,6 +349,9 @@ def summary_lines(report: SweepReport) -> list[str]:
         # Both sides of each task: evaluation.json (target) and evaluation-source.json.
         pattern = report.spec.out / RUNS_DIR / method / "*" / "*" / "evaluation*.json"
         lines.append(f"each task's source-target gap ({method} on both sides): offdyn-bench protocol gap {pattern}")
+    if done and report.spec.budget is not None:
+        # Records at a protocol budget can be published run by run, long before a submission exists.
+        lines.append(f"publish the finished runs' records: offdyn-bench leaderboard publish-runs {report.spec.out}")
     for method in report.spec.methods:
         if method not in report.submissions:
             lines.append(f"{method}: not every run finished; no merged evaluations yet")

@@ -180,6 +180,12 @@ def test_the_sweep_gives_each_tasks_source_target_gap(shared_source_sweep):
     lines = summary_lines(shared_source_sweep)
     pattern = shared_source_sweep.spec.out / "runs" / "sac-source" / "*" / "*" / "evaluation*.json"
     assert f"each task's source-target gap (sac-source on both sides): offdyn-bench protocol gap {pattern}" in lines
+    # The tiny sweep's records are at no protocol budget, so there is nothing to publish; at one there is.
+    assert not any("publish-runs" in line for line in lines)
+    at_budget = dataclasses.replace(shared_source_sweep, spec=dataclasses.replace(
+        shared_source_sweep.spec, budget="lite", steps=None))
+    out = shared_source_sweep.spec.out
+    assert f"publish the finished runs' records: offdyn-bench leaderboard publish-runs {out}" in summary_lines(at_budget)
 
 
 def test_a_sweep_made_before_the_source_side_adds_only_the_source_evaluations(shared_source_sweep, tmp_path):
