@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -97,6 +98,7 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
     runs = sweep_out / "runs"
     if not runs.is_dir():
         raise SubmissionError(f"{sweep_out}: no runs/ folder; expected the out folder of `offdyn-bench sweep`")
+    _check_destination(dest)
     folders = sorted(path for path in runs.glob("*/*/*") if path.is_dir())
     if methods:
         present = {folder.parts[-3] for folder in folders}
@@ -139,15 +141,29 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
     state = _sweep_state(sweep_out)
     compute = _compute_documents(state, [target for _, target, _ in plan]) if state is not None else {}
     data_of = {target: data for _, target, data in plan}
-    for target in written:
-        write_file_atomic(target, data_of[target])
-    for path, document in compute.items():
-        write_file_atomic(path, (json.dumps(document, indent=1) + "\n").encode())
+    try:
+        for target in written:
+            write_file_atomic(target, data_of[target])
+        for path, document in compute.items():
+            write_file_atomic(path, (json.dumps(document, indent=1) + "\n").encode())
+    except OSError as error:
+        # Each file is whole or absent (atomic renames); publishing again finishes the job.
+        raise SubmissionError(f"{dest}: writing failed ({error.strerror or error}: {error.filename}); every "
+                              "file written is complete, and publishing again writes the rest") from None
     return PublishReport(tuple(written), tuple(unchanged), tuple(unfinished), tuple(compute))
 
 
 COMPUTE_FILE = "compute.json"
 _ATTEMPT_FIELDS = ("attempt", "ok", "stage", "wall_time_s", "cpu_time_s", "host")
+
+
+def _check_destination(dest: Path) -> None:
+    """Refuse a destination that cannot hold folders, before anything is read or written."""
+    existing = next((path for path in (dest, *dest.parents) if path.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise SubmissionError(f"--to {dest}: {existing} is a file; expected a folder (or a path to create one)")
+    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+        raise SubmissionError(f"--to {dest}: {existing} is not writable by this user")
 
 
 def _sweep_state(sweep_out: Path) -> dict[str, Any] | None:

@@ -307,3 +307,11 @@ def test_a_broken_sweep_state_publishes_nothing(sweep_out, tmp_path):
                                               r"nothing was published"):
         publish_reference_runs(sweep_out, tmp_path / "published")
     assert not (tmp_path / "published").exists()
+
+
+def test_publishing_refuses_a_destination_under_a_file(sweep_out, tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    with pytest.raises(SubmissionError, match=r"--to .*a-file/published: .*a-file is a file; expected a folder"):
+        publish_reference_runs(sweep_out, blocker / "published")
+    assert blocker.read_text() == "not a folder"
