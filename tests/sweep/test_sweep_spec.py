@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -220,10 +221,16 @@ def test_a_track_that_is_not_text_names_all_four_tracks(tmp_path, tiny_spec, wri
         assert track in line
 
 
-@pytest.mark.parametrize("name", ["oracle-lite.yaml", "reference-lite.yaml", "reference-lite-gpu.yaml", "tiny.json"])
-def test_every_shipped_spec_expands(name, tmp_path):
-    from pathlib import Path
+_SHIPPED_SPECS = sorted(p.name for p in (Path(__file__).resolve().parents[2] / "examples" / "sweeps").iterdir()
+                        if p.suffix in (".yaml", ".json"))
 
+
+def test_the_shipped_specs_are_found():
+    assert {"oracle-lite.yaml", "reference-lite.yaml", "hopper-candidates-lite.yaml", "tiny.json"} <= set(_SHIPPED_SPECS)
+
+
+@pytest.mark.parametrize("name", _SHIPPED_SPECS)
+def test_every_shipped_spec_expands(name, tmp_path):
     path = Path(__file__).resolve().parents[2] / "examples" / "sweeps" / name
     runs = expand(load_spec(path, out=tmp_path / "out"))
     assert runs and all(run.folder.is_relative_to(tmp_path / "out") for run in runs)
