@@ -19,7 +19,7 @@ from offdyn_bench.sweep.spec import CORE, SpecError, SweepSpec
 RUNS_DIR, LOGS_DIR = "runs", "logs"
 EVALUATION_FILE, RESULT_FILE, CONFIG_FILE = "evaluation.json", "result.json", "config.json"
 SOURCE_EVALUATION_FILE = "evaluation-source.json"
-"""A source-only run's evaluation in its task's source: the other half of the task's gap (PROTOCOL.md §7)."""
+"""A source-only run's evaluation in its task's source: the other half of the task's gap (PROTOCOL.md §6)."""
 
 
 @dataclasses.dataclass(frozen=True)
