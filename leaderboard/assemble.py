@@ -31,8 +31,9 @@ _SHARED_FIELDS = ("protocol_version", "track", "budget", "method", "versions")
 """Fields every evaluation of one submission must agree on."""
 
 
-def read_evaluation(path: Path) -> dict[str, Any]:
-    """The ``offdyn-bench evaluate`` record at ``path``, strictly parsed (NaN and duplicate keys refused)."""
+def read_evaluation_strict(path: Path) -> dict[str, Any]:
+    """The ``offdyn-bench evaluate`` record at ``path``, parsed as strictly as a submission (NaN and
+    duplicate keys refused; ``offdyn_bench.evaluate.read_evaluation`` is the lenient reader)."""
     try:
         document = parse_json_strict(path.read_bytes(), source=str(path))
     except OSError as error:
@@ -103,7 +104,7 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
     if not paths:
         raise SubmissionError(f"no {EVALUATION_FILE} under {runs_dir}; run `offdyn-bench evaluate` on each "
                               "run folder first")
-    evaluations = {path: read_evaluation(path) for path in paths}
+    evaluations = {path: read_evaluation_strict(path) for path in paths}
 
     for path, evaluation in evaluations.items():
         # `evaluate` says itself when a record is no protocol result (the source side, another

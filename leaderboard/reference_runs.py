@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from leaderboard.assemble import read_evaluation
+from leaderboard.assemble import read_evaluation_strict
 from leaderboard.store import write_file_atomic
 from leaderboard.submission import SubmissionError
 from offdyn_bench.errors import OffdynError
@@ -118,7 +118,7 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
             path = folder / name
             if not path.exists():
                 continue
-            record = read_evaluation(path)
+            record = read_evaluation_strict(path)
             check_reference_record(path, record, method, task, label, side)
             plan.append((path, dest / str(record["budget"]) / method / task / label / name, path.read_bytes()))
     if not plan:
@@ -241,7 +241,7 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
     def read_checked(path: Path) -> dict[str, Any]:
         # Published files are checked again where they are read: a hand edit is refused, not rendered.
         method, task, label, name = path.relative_to(budget_dir).parts
-        record = read_evaluation(path)
+        record = read_evaluation_strict(path)
         check_reference_record(path, record, method, task, label, RECORD_FILES[name])
         return record
 
