@@ -215,7 +215,8 @@ def claims(evaluations: list[Path] = typer.Argument(..., help="evaluation.json f
 @protocol_app.command("gap")
 def gap(evaluations: list[Path] = typer.Argument(..., help="evaluation.json files of one budget: sac-source's "
                                                            "target-side and source-side (evaluate --side source) "
-                                                           "records."),
+                                                           "records; sac-target records beside them are the "
+                                                           "oracle of a task without a recorded one."),
         as_json: bool = typer.Option(False, "--json"),
         reference_file: Path | None = typer.Option(None, "--reference-file", help="Reference scores (default: "
                                                    "assets/reference_scores.json).")) -> None:

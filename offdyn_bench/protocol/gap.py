@@ -32,7 +32,10 @@ class TaskGap:
     target_seed_means: tuple[float, ...]
     random_return: float | None
     oracle_seed_means: tuple[float, ...] | None
-    """The task's oracle at ``budget`` per training seed; None where the reference file has none."""
+    """The task's oracle at ``budget`` per training seed; None where there is none."""
+    oracle_from: str | None = None
+    """``reference file`` (the protocol's recorded oracle) or ``records`` (the ``sac-target`` records
+    given beside the method's, for a task the reference file has no oracle for); None: no oracle."""
 
     @property
     def source_return(self) -> float | None:
@@ -78,13 +81,21 @@ class TaskGap:
                 "source_return": self.source_return, "source_seeds": len(self.source_seed_means),
                 "target_return": self.target_return, "target_seeds": len(self.target_seed_means),
                 "kept": self.kept, "random_return": self.random_return, "oracle_return": self.oracle_return,
-                "oracle_seeds": len(self.oracle_seed_means or ()), "normalized_target": self.normalized_target,
+                "oracle_seeds": len(self.oracle_seed_means or ()), "oracle_from": self.oracle_from,
+                "normalized_target": self.normalized_target,
                 "p_oracle_better": self.oracle_better_probability}
+
+
+ORACLE_METHOD = "sac-target"
 
 
 def measure_gaps(records: Sequence[Mapping[str, Any]], reference_file: str | None = None) -> list[TaskGap]:
     """One row per (method, task) of ``records`` (evaluation.json contents, either side, one budget),
-    with the task's references at that budget from the reference file; in task order."""
+    with the task's references at that budget from the reference file; in task order.
+
+    ``sac-target`` target-side records among them are the oracle of a task the reference file has
+    no oracle for (a candidate task, or oracle runs not recorded yet), not rows of their own; where
+    the reference file has one, it is the protocol's and the records are not used."""
     from offdyn_bench.protocol.references import reference_scores
 
     if not records:
@@ -99,8 +110,15 @@ def measure_gaps(records: Sequence[Mapping[str, Any]], reference_file: str | Non
     seeds = group_seed_means(records, key_of, lambda key: f"of task {key[1]!r} ({key[2]} side)")
     budget = single_budget(records, "measure")
     references = reference_scores(reference_file)
+    given_oracle = {task: tuple(means[s] for s in sorted(means))
+                    for (method, task, side), means in seeds.items() if method == ORACLE_METHOD and side == "target"}
+    rows = {(m, t) for m, t, side in seeds if not (m == ORACLE_METHOD and side == "target"
+                                                 and (m, t, "source") not in seeds)}
+    if not rows:
+        raise ProtocolError(f"only {ORACLE_METHOD} target-side records given; pass the method's records beside them "
+                            "(sac-source's on both sides for the source-target gap)")
     gaps = []
-    for method, task in sorted({(m, t) for m, t, _ in seeds}, key=lambda mt: (mt[1], mt[0])):
+    for method, task in sorted(rows, key=lambda mt: (mt[1], mt[0])):
         source = seeds.get((method, task, "source"), {})
         target = seeds.get((method, task, "target"), {})
         if source and target and set(source) != set(target):
@@ -109,10 +127,11 @@ def measure_gaps(records: Sequence[Mapping[str, Any]], reference_file: str | Non
         task_references = references.get(task, {})
         random = task_references.get("random")
         oracle = task_references.get(f"oracle/{budget}")
+        oracle_means, oracle_from = ((oracle.seed_means(), "reference file") if oracle is not None else
+                                     (given_oracle[task], "records") if task in given_oracle else (None, None))
         gaps.append(TaskGap(method, task, budget,
                             tuple(source[s] for s in sorted(source)), tuple(target[s] for s in sorted(target)),
-                            random.mean_return if random is not None else None,
-                            oracle.seed_means() if oracle is not None else None))
+                            random.mean_return if random is not None else None, oracle_means, oracle_from))
     return gaps
 
 
@@ -130,10 +149,14 @@ def gaps_markdown(gaps: Sequence[TaskGap]) -> str:
         lines.append(
             f"| {gap.task} | {gap.method} | {_number(gap.source_return)} ({len(gap.source_seed_means)}) | "
             f"{_number(gap.target_return)} ({len(gap.target_seed_means)}) | {_number(gap.kept, '{:.2f}')} | "
-            f"{_number(gap.oracle_return)} | {_number(gap.normalized_target)} | "
+            f"{_number(gap.oracle_return)}{'*' if gap.oracle_from == 'records' else ''} | "
+            f"{_number(gap.normalized_target)} | "
             f"{_number(gap.oracle_better_probability, '{:.2f}')} |")
     lines += ["", "Returns are means over training seeds (their number in brackets), each seed's return the mean "
                   "of its episodes. kept = target / source return (only for a positive source return). The "
                   "normalized score and P(oracle > method) need the task's random and oracle references at "
                   "this budget; '-' where they are missing."]
+    if any(gap.oracle_from == "records" for gap in gaps):
+        lines.append("* an oracle from the sac-target records given, for a task the reference file has none "
+                     "for (not a recorded reference).")
     return "\n".join(lines) + "\n"

@@ -100,3 +100,26 @@ def test_gap_command_reads_evaluation_files(tmp_path, reference_file):
     (tmp_path / "not.json").write_text("{}")
     refused = runner.invoke(app, ["protocol", "gap", str(tmp_path / "not.json")])
     assert refused.exit_code == 2 and "is not an offdyn-bench/evaluation file" in refused.output
+
+
+def test_sac_target_records_are_the_oracle_where_the_reference_file_has_none(reference_file):
+    """Walker has no recorded oracle: the sac-target records given beside sac-source's are its oracle
+    (seed means 40 and 101 against RL on source's 5), marked as such, and no row of their own."""
+    oracle_runs = [record("sac-target", WALKER, {0: [30.0, 50.0], 1: [101.0]})]
+    walker = both_sides(WALKER, source={0: [50.0]}, target={0: [5.0]})
+    [gap] = measure_gaps(walker + oracle_runs, str(reference_file))
+    assert (gap.method, gap.oracle_from, gap.oracle_seed_means) == ("sac-source", "records", (40.0, 101.0))
+    assert gap.normalized_target == pytest.approx(100 * (5.0 - 1.0) / (70.5 - 1.0))
+    assert gap.oracle_better_probability == 1.0
+    text = gaps_markdown([gap])
+    assert "| walker2d-gravity-2.0 | sac-source | 50.0 (1) | 5.0 (1) | 0.10 | 70.5* | 5.8 | 1.00 |" in text
+    assert "* an oracle from the sac-target records given" in text
+    # Hopper has a recorded oracle: it is the protocol's, and records given beside it change nothing.
+    [hopper] = measure_gaps(both_sides() + [record("sac-target", HOPPER, {0: [1.0], 1: [2.0]})], str(reference_file))
+    assert hopper.oracle_from == "reference file" and hopper.oracle_seed_means == (300.0, 625.0)
+    assert "*" not in gaps_markdown([hopper])
+
+
+def test_oracle_records_alone_are_no_gap(reference_file):
+    with pytest.raises(OffdynError, match=r"only sac-target target-side records given; pass the method's records"):
+        measure_gaps([record("sac-target", WALKER, {0: [1.0]})], str(reference_file))
