@@ -29,9 +29,10 @@ from leaderboard.assemble import read_evaluation_strict
 from leaderboard.store import write_file_atomic
 from leaderboard.submission import SubmissionError
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.sweep.runs import EVALUATION_FILE, SOURCE_EVALUATION_FILE, seed_label
 
 REFERENCE_RUNS_DIR = Path(__file__).resolve().parent / "reference-runs"
-RECORD_FILES = {"evaluation.json": "target", "evaluation-source.json": "source"}
+RECORD_FILES = {EVALUATION_FILE: "target", SOURCE_EVALUATION_FILE: "source"}
 """A run folder's record files and the side each holds (the sweep's names)."""
 
 
@@ -45,11 +46,6 @@ class PublishReport:
     """Run folders of the sweep without a target record yet (training or never started)."""
     compute: tuple[Path, ...] = ()
     """The ``compute.json`` files updated with the published runs' compute (from the sweep's state)."""
-
-
-def _seed_label(seeds: Sequence[int]) -> str:
-    # The sweep's folder names (offdyn_bench.sweep.runs.seed_label), without importing the sweep.
-    return f"seed-{seeds[0]}" if len(seeds) == 1 else f"seeds-{seeds[0]}-{seeds[-1]}"
 
 
 def check_reference_record(path: Path, record: dict[str, Any], method: str, task: str, label: str,
@@ -80,7 +76,7 @@ def check_reference_record(path: Path, record: dict[str, Any], method: str, task
     if not isinstance(seeds, list) or not seeds or not all(isinstance(s, dict) for s in seeds):
         raise fail("no per-seed returns")
     numbers = [s.get("seed") for s in seeds]
-    if not all(isinstance(n, int) for n in numbers) or _seed_label(sorted(numbers)) != label:
+    if not all(isinstance(n, int) for n in numbers) or seed_label(sorted(numbers)) != label:
         raise fail(f"seeds {numbers}; its folder {label!r} names others")
     for entry in seeds:
         returns = entry.get("returns")
@@ -111,7 +107,7 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
     unfinished = []
     for folder in folders:
         method, task, label = folder.parts[-3:]
-        if not (folder / "evaluation.json").exists():
+        if not (folder / EVALUATION_FILE).exists():
             unfinished.append(folder)
             continue
         for name, side in RECORD_FILES.items():
@@ -233,6 +229,7 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
     published yet): what the reference submissions will hold, as far as it exists."""
     from offdyn_bench.protocol import CORE_SUITE
     from offdyn_bench.protocol.gap import measure_gaps
+    from offdyn_bench.protocol.scoring import seed_means
 
     if not root.is_dir():
         raise SubmissionError(f"{root}: not a folder; expected published reference runs "
@@ -252,10 +249,9 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
         gaps = {gap.task: gap for gap in measure_gaps(source_records, str(references) if references else None)} \
             if source_records else {}
         oracle: dict[str, list[float]] = {}
-        for path in sorted(budget_dir.glob("sac-target/*/*/evaluation.json")):
+        for path in sorted(budget_dir.glob(f"sac-target/*/*/{EVALUATION_FILE}")):
             record = read_checked(path)
-            for seed in record["seeds"]:
-                oracle.setdefault(record["task"], []).append(sum(seed["returns"]) / len(seed["returns"]))
+            oracle.setdefault(record["task"], []).extend(seed_means(record).values())
         progress[budget_dir.name] = [ReferenceProgress(task, gaps.get(task), tuple(oracle.get(task, ())))
                                      for task in CORE_SUITE]
     return progress

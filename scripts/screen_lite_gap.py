@@ -26,11 +26,13 @@ import numpy as np
 
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.evaluate import evaluate
+from offdyn_bench.protocol.scoring import seed_means
 from offdyn_bench.tasks import TASKS, get_task
 
 
 def _mean(record: dict) -> float:
-    return float(np.mean(record["seeds"][0]["returns"]))
+    """The record's mean return over its training seeds (each seed's the mean of its episodes)."""
+    return float(np.mean(list(seed_means(record).values())))
 
 
 def main() -> None:

@@ -24,14 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from baselines.run_folder import LOCK_FILE
-from offdyn_bench.sweep.runs import (
-    EVALUATION_FILE,
-    RESULT_FILE,
-    SOURCE_EVALUATION_FILE,
-    Run,
-    finished_evaluation,
-    settings_conflict,
-)
+from offdyn_bench.sweep.runs import RESULT_FILE, Run, evaluation_path, finished_evaluation, settings_conflict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,24 +94,20 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
         for side, args in sides:
             if finished_evaluation(run, side) is not None:
                 # An earlier attempt (or a sweep before the source side was owed) wrote it.
-                log.write(f"=== the {side} side is evaluated already: {_evaluation_path(run, side)}\n")
+                log.write(f"=== the {side} side is evaluated already: {evaluation_path(run, side)}\n")
                 continue
             code, used = _run_logged(command_line(args), log)
             cpu += used
             if code != 0:
                 return outcome(False, "evaluate", code, _exit_text("evaluate", code, run.log))
             if finished_evaluation(run, side) is None:
-                return outcome(False, "check", error=f"{_evaluation_path(run, side)} does not hold the expected "
+                return outcome(False, "check", error=f"{evaluation_path(run, side)} does not hold the expected "
                                                      f"{run.evaluation_episodes} episodes of seeds {list(run.seeds)}")
         record = finished_evaluation(run)
         if record is None:  # removed or replaced while the source side ran
-            return outcome(False, "check", error=f"{_evaluation_path(run, 'target')} changed during the attempt")
+            return outcome(False, "check", error=f"{evaluation_path(run, 'target')} changed during the attempt")
         returns = [float(x) for seed in record["seeds"] for x in seed["returns"]]
         return outcome(True, "check", mean_return=sum(returns) / len(returns))
-
-
-def _evaluation_path(run: Run, side: str) -> Path:
-    return run.folder / (EVALUATION_FILE if side == "target" else SOURCE_EVALUATION_FILE)
 
 
 def _wait_for_other_trainer(folder: Path, log: Any) -> None:

@@ -236,6 +236,11 @@ def official_datasets(runs: Sequence[Run]) -> list[str]:
                               if dataset is not None))
 
 
+def evaluation_path(run: Run, side: str = "target") -> Path:
+    """The record of ``run`` on ``side``: ``evaluation.json`` (target) or ``evaluation-source.json``."""
+    return run.folder / (EVALUATION_FILE if side == "target" else SOURCE_EVALUATION_FILE)
+
+
 def run_finished(run: Run) -> bool:
     """Whether every evaluation the run owes is complete: the target's, and for a source-only
     method the source side's too."""
@@ -247,7 +252,7 @@ def finished_evaluation(run: Run, side: str = "target") -> dict[str, Any] | None
     """The run's ``evaluation.json`` (``side="source"``: ``evaluation-source.json``) when it is a
     complete evaluation of exactly this run (its method, task, seeds, steps and episode count, on
     that side); otherwise None."""
-    path = run.folder / (EVALUATION_FILE if side == "target" else SOURCE_EVALUATION_FILE)
+    path = evaluation_path(run, side)
     try:
         record = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
