@@ -189,6 +189,10 @@ def _compute_documents(runs: dict[str, Any], published: Sequence[Path]) -> dict[
         record = runs.get(run_id)
         if not isinstance(record, dict) or record.get("status") != "done":
             continue
+        if not record.get("attempts") and not record.get("history"):
+            # Found finished (its records restored or made by an earlier sweep whose state is gone):
+            # this sweep measured no compute for it, and a stored entry must not become zeros.
+            continue
         history = [{key: attempt.get(key) for key in _ATTEMPT_FIELDS}
                    for attempt in record.get("history") or [] if isinstance(attempt, dict)]
         by_budget.setdefault(budget_dir, {})[run_id] = {

@@ -305,6 +305,28 @@ def test_publishing_records_each_runs_compute_from_the_sweeps_state(sweep_out, t
     assert list(runs) == ["sac-target/hopper-gravity-0.5/seed-0", "sac-target/hopper-gravity-0.5/seed-1"]
 
 
+def test_a_run_found_finished_keeps_the_compute_recorded_when_it_ran(sweep_out, tmp_path):
+    # A later sweep that finds the records already there (restored from the published ones, or its
+    # state file lost) measured nothing: the entry written when the run trained is kept.
+    ran = {"status": "done", "attempts": 1, "wall_time_s": 1300.0, "cpu_time_s": 1250.0,
+           "history": [_attempt(1, 1300.0, 1250.0)]}
+    found = {"status": "done", "attempts": 0, "wall_time_s": 0.0, "cpu_time_s": 0.0, "history": []}
+    run_id = "sac-target/hopper-gravity-0.5/seed-0"
+    (sweep_out / "sweep.json").write_text(_state({run_id: ran}))
+    dest = tmp_path / "published"
+    publish_reference_runs(sweep_out, dest)
+    compute_file = dest / "lite" / "compute.json"
+    recorded = compute_file.read_bytes()
+    (sweep_out / "sweep.json").write_text(_state({run_id: found}))
+    publish_reference_runs(sweep_out, dest)
+    assert compute_file.read_bytes() == recorded
+    assert json.loads(recorded)["runs"][run_id]["cpu_time_s"] == 1250.0
+    # Published for the first time with no compute measured: no entry rather than a false zero.
+    (sweep_out / "sweep.json").write_text(_state({run_id: found}))
+    report = publish_reference_runs(sweep_out, tmp_path / "fresh")
+    assert report.compute == ()
+
+
 def test_a_broken_sweep_state_publishes_nothing(sweep_out, tmp_path):
     (sweep_out / "sweep.json").write_text('{"runs": [1, 2]}')
     with pytest.raises(SubmissionError, match=r"sweep.json: not a sweep state file \(its runs are not a mapping\); "
