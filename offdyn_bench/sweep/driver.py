@@ -142,23 +142,42 @@ def format_duration(seconds: float | None) -> str:
 
 
 class _Progress:
-    """Counts and ETA of the whole sweep, printed on every change and every PROGRESS_EVERY_S."""
+    """Counts and ETA of the whole sweep, printed on every change and every PROGRESS_EVERY_S.
 
-    def __init__(self, echo: Echo | None, total: int) -> None:
+    The ETA weighs each remaining run by the mean wall time of finished runs of its kind: a run
+    that trains, or one that only scores another run's policy (seconds, not the training's
+    minutes; counting it as a training would put a source-only sweep's ETA hours late)."""
+
+    def __init__(self, echo: Echo | None, total: int, kinds: dict[str, str] | None = None) -> None:
         self.echo, self.total = echo, total
-        self.walls: list[float] = []
+        self.kinds = kinds or {}
+        """Per run id, ``train`` or ``score``; a run not named trains."""
+        self.walls: dict[str, list[float]] = {"train": [], "score": []}
         self.last_line, self.last_time = "", 0.0
+
+    def kind(self, run_id: str) -> str:
+        return self.kinds.get(run_id, "train")
+
+    def add_wall(self, run_id: str, wall: float) -> None:
+        self.walls[self.kind(run_id)].append(wall)
 
     def line(self, records: dict[str, RunRecord], capacity: int) -> str:
         counts = {status: 0 for status in ("done", "running", "failed", "pending")}
         for record in records.values():
             counts[record.status] = counts.get(record.status, 0) + 1
-        remaining = counts["running"] + counts["pending"]
+        remaining = [run_id for run_id, record in records.items() if record.status in ("running", "pending")]
+        every = [wall for walls in self.walls.values() for wall in walls]
         eta = None
-        if remaining == 0:
+        if not remaining:
             eta = 0.0
-        elif self.walls:
-            eta = sum(self.walls) / len(self.walls) * remaining / max(1, min(capacity, remaining))
+        elif every:
+            def mean_wall(kind: str) -> float:
+                # A kind with no finished run yet borrows the mean of all finished runs.
+                walls = self.walls[kind] or every
+                return sum(walls) / len(walls)
+
+            work = sum(mean_wall(self.kind(run_id)) for run_id in remaining)
+            eta = work / max(1, min(capacity, len(remaining)))
         return (f"sweep: {counts['done']}/{self.total} done, {counts['running']} running, {counts['failed']} failed, "
                 f"{counts['pending']} pending; ETA {format_duration(eta)}")
 
@@ -239,9 +258,11 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     ensure_dataset(dataset, progress=False, echo=lambda line: say(f"dataset: {line}"))
                 if engine is None:
                     engine = make_backend(backend, spec, workers)
-                progress = _Progress(echo, len(runs))
-                progress.walls = [records[run.run_id].wall_time_s for run in runs
-                                  if records[run.run_id].status == "done" and records[run.run_id].wall_time_s > 0]
+                progress = _Progress(echo, len(runs), {
+                    run.run_id: "train" if run.shared_training is None else "score" for run in runs})
+                for run in runs:
+                    if records[run.run_id].status == "done" and records[run.run_id].wall_time_s > 0:
+                        progress.add_wall(run.run_id, records[run.run_id].wall_time_s)
                 tries_left = {run.run_id: 1 + spec.max_retries for run in pending}
                 in_flight: dict[Any, Run] = {}
                 trainer_of = {run.folder: run for run in runs if run.shared_training is None}
@@ -281,7 +302,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                             tries_left[run.run_id] -= 1
                             if outcome.ok:
                                 record.status, record.error, record.mean_return = "done", None, outcome.mean_return
-                                progress.walls.append(record.wall_time_s)
+                                progress.add_wall(run.run_id, record.wall_time_s)
                             elif tries_left[run.run_id] > 0:
                                 record.status, record.error = "pending", outcome.error
                                 say(f"sweep: {run.run_id} attempt {record.attempts} failed ({outcome.error}); "

@@ -253,3 +253,28 @@ def test_a_spec_changed_under_finished_runs_is_refused_and_changes_nothing(finis
                                         rf"sac-source/{TASK}/seed-0 \(differs in: config\.sac\.batch_size\)"):
         run_sweep(changed, workers=1, echo=None)
     assert (out / STATE_FILE).read_bytes() == state_before
+
+
+def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
+    # A source-only sweep: one training scored on three more tasks. Counting the three scoring
+    # runs as trainings would say 80 minutes; they take seconds.
+    from offdyn_bench.sweep.driver import RunRecord, _Progress
+
+    def record(status: str) -> RunRecord:
+        return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
+
+    kinds = {"train-0": "train", "score-0": "score", "train-1": "train",
+             "score-1": "score", "score-2": "score", "score-3": "score"}
+    records = {"train-0": record("done"), "score-0": record("done"), "train-1": record("running"),
+               "score-1": record("pending"), "score-2": record("pending"), "score-3": record("pending")}
+    progress = _Progress(None, len(records), kinds)
+    assert progress.line(records, capacity=1).endswith("ETA ?")  # nothing finished: no estimate
+    progress.add_wall("train-0", 1200.0)
+    # No scoring run finished yet: each borrows the mean of what did finish.
+    assert progress.line(records, capacity=1).endswith("ETA 1h20m")
+    progress.add_wall("score-0", 6.0)
+    assert progress.line(records, capacity=1) == "sweep: 2/6 done, 1 running, 0 failed, 3 pending; ETA 20m18s"
+    assert progress.line(records, capacity=2).endswith("ETA 10m09s")  # two workers share the work
+    for run_id in ("train-1", "score-1", "score-2", "score-3"):
+        records[run_id].status = "done"
+    assert progress.line(records, capacity=1).endswith("ETA 0s")
