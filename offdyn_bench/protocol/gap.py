@@ -139,6 +139,14 @@ def _number(value: float | None, form: str = "{:.1f}") -> str:
     return "-" if value is None else form.format(value)
 
 
+def _oracle_cell(gap: TaskGap) -> str:
+    # Its seed count too: an oracle from records given may have fewer seeds than a recorded one.
+    if gap.oracle_seed_means is None:
+        return "-"
+    mark = "*" if gap.oracle_from == "records" else ""
+    return f"{_number(gap.oracle_return)}{mark} ({len(gap.oracle_seed_means)})"
+
+
 def gaps_markdown(gaps: Sequence[TaskGap]) -> str:
     """A table: per (method, task) the returns on both sides, the fraction kept, and the oracle."""
     budget = gaps[0].budget if gaps else "-"
@@ -149,13 +157,13 @@ def gaps_markdown(gaps: Sequence[TaskGap]) -> str:
         lines.append(
             f"| {gap.task} | {gap.method} | {_number(gap.source_return)} ({len(gap.source_seed_means)}) | "
             f"{_number(gap.target_return)} ({len(gap.target_seed_means)}) | {_number(gap.kept, '{:.2f}')} | "
-            f"{_number(gap.oracle_return)}{'*' if gap.oracle_from == 'records' else ''} | "
+            f"{_oracle_cell(gap)} | "
             f"{_number(gap.normalized_target)} | "
             f"{_number(gap.oracle_better_probability, '{:.2f}')} |")
-    lines += ["", "Returns are means over training seeds (their number in brackets), each seed's return the mean "
-                  "of its episodes. kept = target / source return (only for a positive source return). The "
-                  "normalized score and P(oracle > method) need the task's random and oracle references at "
-                  "this budget; '-' where they are missing."]
+    lines += ["", "Returns (the oracle's too) are means over training seeds (their number in brackets), each "
+                  "seed's return the mean of its episodes. kept = target / source return (only for a positive "
+                  "source return). The normalized score and P(oracle > method) need the task's random and oracle "
+                  "references at this budget; '-' where they are missing."]
     if any(gap.oracle_from == "records" for gap in gaps):
         lines.append("* an oracle from the sac-target records given, for a task the reference file has none "
                      "for (not a recorded reference).")
