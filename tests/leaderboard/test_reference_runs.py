@@ -61,26 +61,32 @@ def test_the_shipped_oracle_references_are_the_published_sac_target_runs():
             assert record["agent"]["policy_sha256"] == shipped[f"seed-{record['seeds'][0]['seed']}"], task
 
 
-def _protocol_gap_rows() -> dict[str, tuple[str, ...]]:
-    """PROTOCOL.md §9's gap tables (one per robot): task -> its cells after the task."""
+def _protocol_gap_tables() -> list[tuple[str, dict[str, tuple[str, ...]]]]:
+    """PROTOCOL.md §9's gap tables (one per robot): the text before each, and its rows (task -> its
+    cells after the task)."""
     text = (REPO / "PROTOCOL.md").read_text()
     section = text[text.index("## 9."):]
     header = "| task | RL on source, source / target return |"
-    rows = {}
-    for table in section.split(header)[1:]:
+    pieces = section.split(header)
+    tables = []
+    for before, table in zip(pieces, pieces[1:]):
+        rows = {}
         for line in table.splitlines()[2:]:
             line = line.strip()  # the tables are indented inside list items
             if not line.startswith("| `"):
                 break
             cells = [cell.strip() for cell in line.strip("|").split("|")]
             rows[cells[0].strip("`")] = tuple(cells[1:])
-    return rows
+        # The text just before a table introduces it (whitespace normalized: it wraps across lines).
+        tables.append((" ".join(before[-800:].split()), rows))
+    return tables
 
 
 def test_protocol_md_gap_table_is_what_protocol_gap_computes_from_the_published_runs():
     from offdyn_bench.protocol.gap import measure_gaps
 
-    rows = _protocol_gap_rows()
+    tables = _protocol_gap_tables()
+    rows = {task: cells for _, table in tables for task, cells in table.items()}
     assert len(rows) >= 8 and {"hopper-gravity-0.5", "walker2d-gravity-2.0"} <= set(rows)
     gaps = {gap.task: gap for gap in measure_gaps(_records("sac-source"))}
     for task, cells in rows.items():
@@ -92,10 +98,11 @@ def test_protocol_md_gap_table_is_what_protocol_gap_computes_from_the_published_
 
         assert cells == (f"{gap.source_return:.1f} / {gap.target_return:.1f}", f"{gap.kept:.2f}",
                          shown(gap.normalized_target, "{:.1f}"), shown(gap.oracle_better_probability, "{:.2f}")), task
-    # The text says over how many seeds the table is.
-    counts = {len(gaps[task].target_seed_means) for task in rows}
-    assert len(counts) == 1
-    assert f"over {counts.pop()} `sac-source` lite seeds" in (REPO / "PROTOCOL.md").read_text()
+    # The text introducing each table says over how many seeds it is.
+    for before, table in tables:
+        counts = {len(gaps[task].target_seed_means) for task in table}
+        assert len(counts) == 1, sorted(table)
+        assert f"over {counts.pop()} `sac-source` lite seeds" in before, sorted(table)
 
 
 # Publishing: a sweep's out folder, here built from the published records themselves.
