@@ -208,3 +208,30 @@ def test_a_sweep_made_before_the_source_side_adds_only_the_source_evaluations(sh
         log = run.log.read_text().split("=== attempt 2 ")[-1]
         assert "the target side is evaluated already" in log and "--side source" in log
         assert " train " not in log
+
+
+def test_a_run_scoring_a_finished_training_starts_before_the_next_training(tmp_path, tiny_spec, monkeypatch):
+    """One worker, two seeds, two tasks: the second task's score of seed 0 (seconds) runs as soon as
+    seed 0 is trained, not after seed 1's training."""
+    from offdyn_bench.sweep import driver
+
+    started: list[str] = []
+    make_backend = driver.make_backend
+
+    def recording_backend(*args, **kwargs):
+        engine = make_backend(*args, **kwargs)
+        submit = engine.submit
+
+        def submit_and_record(run, attempt):
+            started.append(run.run_id)
+            return submit(run, attempt)
+
+        engine.submit = submit_and_record
+        return engine
+
+    monkeypatch.setattr(driver, "make_backend", recording_backend)
+    spec = parse_spec(tiny_spec(tmp_path / "out", tasks=[FIRST, SECOND], seeds=2), source="order")
+    report = driver.run_sweep(spec, workers=1, echo=None)
+    assert not report.failed
+    assert started == [f"sac-source/{FIRST}/seed-0", f"sac-source/{SECOND}/seed-0",
+                       f"sac-source/{FIRST}/seed-1", f"sac-source/{SECOND}/seed-1"]
