@@ -266,18 +266,20 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 tries_left = {run.run_id: 1 + spec.max_retries for run in pending}
                 in_flight: dict[Any, Run] = {}
                 trainer_of = {run.folder: run for run in runs if run.shared_training is None}
+
+                def may_start(r: Run) -> bool:
+                    # A run that scores another's policy waits until that run is done (then it
+                    # only evaluates) or has failed for good (then so has it).
+                    return r.shared_training is None or records[
+                        trainer_of[r.training_folder].run_id].status in ("done", "failed")
+
                 try:
                     while pending or in_flight:
                         capacity = engine.capacity
                         while pending and len(in_flight) < capacity:
-                            # A run that scores another's policy waits until that run is done
-                            # (then it only evaluates) or has failed for good (then so has it);
-                            # once it may, it goes first: seconds of scoring give a result that
-                            # would otherwise wait behind every training still to start.
-                            def may_start(r: Run) -> bool:
-                                return r.shared_training is None or records[
-                                    trainer_of[r.training_folder].run_id].status in ("done", "failed")
-
+                            # A run that scores another's policy, once it may start, goes first:
+                            # seconds of scoring give a result that would otherwise wait behind
+                            # every training still to start.
                             ready = next((r for r in pending if r.shared_training is not None and may_start(r)),
                                          None) or next((r for r in pending if may_start(r)), None)
                             if ready is None:
