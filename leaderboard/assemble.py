@@ -50,7 +50,7 @@ def read_evaluation_strict(path: Path) -> dict[str, Any]:
     return document
 
 
-def _read_learning_curve(path: Path, seed_count: int) -> list[dict[str, Any]]:
+def read_learning_curve(path: Path, seed_count: int) -> list[dict[str, Any]]:
     """The ``step``/``target_return`` pairs of a ``metrics.jsonl`` (baselines/train.py writes them)."""
     curve = []
     try:
@@ -167,7 +167,7 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
             entry["policy_sha256"] = policy_sha256
         metrics = path.parent / METRICS_FILE
         if learning_curves and metrics.is_file():
-            entry["learning_curve"] = _read_learning_curve(metrics, len(evaluation["seeds"]))
+            entry["learning_curve"] = read_learning_curve(metrics, len(evaluation["seeds"]))
         tasks[task] = entry
 
     method_entry: dict[str, Any] = {"name": method, "description": description}

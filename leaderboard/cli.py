@@ -72,14 +72,17 @@ def publish_runs_command(
     replace: Annotated[bool, typer.Option(
         help="Replace published records whose bytes differ (published numbers change only with this).")] = False,
 ) -> None:
-    """Publish the finished runs' evaluation records of a sweep (both sides), byte for byte."""
+    """Publish the finished runs' evaluation records of a sweep (both sides) and their learning curves, byte for byte."""
     with exit_on_error():
+        from leaderboard.assemble import METRICS_FILE
         from leaderboard.reference_runs import REFERENCE_RUNS_DIR, publish_reference_runs
 
         dest = to if to is not None else REFERENCE_RUNS_DIR
         report = publish_reference_runs(sweep_out, dest, methods=method or (), replace=replace)
-        typer.echo(f"{dest}: wrote {len(report.written)} record(s), {len(report.unchanged)} already published "
-                   f"unchanged; {len(report.unfinished)} run(s) of the sweep not evaluated yet")
+        curves = sum(path.name == METRICS_FILE for path in report.written)
+        typer.echo(f"{dest}: wrote {len(report.written) - curves} record(s) and {curves} learning curve(s), "
+                   f"{len(report.unchanged)} file(s) already published unchanged; {len(report.unfinished)} run(s) "
+                   "of the sweep not evaluated yet")
         for path in report.written:
             typer.echo(f"  {path}")
         for path in report.compute:

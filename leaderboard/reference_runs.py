@@ -4,7 +4,9 @@ A leaderboard submission needs every core-suite task, and the reference methods'
 days of CPU. Until a method's submission is complete, and afterwards as the evidence behind it and
 behind PROTOCOL.md's tables, the raw evaluation records of its finished runs are kept under
 ``leaderboard/reference-runs/<budget>/<method>/<task>/<seed label>/`` as ``evaluation.json`` (the
-target) and ``evaluation-source.json`` (RL on source's other side). That is a sweep's own layout
+target) and ``evaluation-source.json`` (RL on source's other side), with the learning curve of the
+run that trained the policy (``metrics.jsonl``: the target return every evaluation interval, the
+evidence a budget is chosen from). That is a sweep's own layout
 (``<out>/runs/...``), so every command that reads a sweep reads them unchanged: ``protocol gap``,
 ``protocol score``, ``protocol claims`` and ``protocol reference oracle``.
 
@@ -25,7 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from leaderboard.assemble import read_evaluation_strict
+from leaderboard.assemble import METRICS_FILE, read_evaluation_strict, read_learning_curve
 from leaderboard.store import write_file_atomic
 from leaderboard.submission import SubmissionError
 from offdyn_bench.errors import OffdynError
@@ -39,9 +41,9 @@ RECORD_FILES = {EVALUATION_FILE: "target", SOURCE_EVALUATION_FILE: "source"}
 @dataclasses.dataclass(frozen=True)
 class PublishReport:
     written: tuple[Path, ...]
-    """Records new to the destination, or replaced (``replace=True``)."""
+    """Records (and learning curves) new to the destination, or replaced (``replace=True``)."""
     unchanged: tuple[Path, ...]
-    """Records the destination already holds, byte for byte."""
+    """Records (and learning curves) the destination already holds, byte for byte."""
     unfinished: tuple[Path, ...]
     """Run folders of the sweep without a target record yet (training or never started)."""
     compute: tuple[Path, ...] = ()
@@ -87,6 +89,28 @@ def check_reference_record(path: Path, record: dict[str, Any], method: str, task
             raise fail(f"seed {entry['seed']}: a return that is not a finite number")
 
 
+def check_reference_curve(path: Path, record: dict[str, Any]) -> None:
+    """Raise :class:`SubmissionError` unless ``path`` is the whole learning curve of the training
+    whose final policy ``record`` scores: one finite per-seed target return per evaluation, at
+    strictly increasing steps that end at the record's training steps."""
+    curve = read_learning_curve(path, len(record["seeds"]))
+    steps = [point["step"] for point in curve]
+    if not curve or not all(isinstance(step, int) and not isinstance(step, bool) and step > 0 for step in steps):
+        raise SubmissionError(f"{path}: {'no evaluation' if not curve else 'a step that is not a positive integer'}; "
+                              "expected the metrics.jsonl `offdyn-bench train` wrote")
+    for earlier, later in zip(steps, steps[1:]):
+        if later <= earlier:
+            raise SubmissionError(f"{path}: step {later} follows step {earlier}; expected one line per evaluation, "
+                                  "in order")
+    if steps[-1] != record.get("steps"):
+        raise SubmissionError(f"{path}: the curve ends at step {steps[-1]}, but the evaluation beside it scores the "
+                              f"policy of step {record.get('steps')}; publish the curve of the training it scores")
+    for point in curve:
+        returns = point["target_return"]
+        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in returns):
+            raise SubmissionError(f"{path}: step {point['step']}: a target return that is not a finite number")
+
+
 def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, methods: Sequence[str] = (),
                            replace: bool = False) -> PublishReport:
     """Copy the finished runs' records of the sweep in ``sweep_out`` (its ``runs/`` folder) into
@@ -116,6 +140,12 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
                 continue
             record = read_evaluation_strict(path)
             check_reference_record(path, record, method, task, label, side)
+            if side == "target" and (folder / METRICS_FILE).exists():
+                # The curve first: the folder's evaluation, written last, marks it complete.
+                curve_path = folder / METRICS_FILE
+                check_reference_curve(curve_path, record)
+                plan.append((curve_path, dest / str(record["budget"]) / method / task / label / METRICS_FILE,
+                             curve_path.read_bytes()))
             plan.append((path, dest / str(record["budget"]) / method / task / label / name, path.read_bytes()))
     if not plan:
         raise SubmissionError(f"{sweep_out}: no finished run to publish ({len(unfinished)} unfinished)")

@@ -229,3 +229,18 @@ def gap(evaluations: list[Path] = typer.Argument(..., help="evaluation.json file
         gaps = measure_gaps([read_evaluation(path) for path in evaluations],
                             str(reference_file) if reference_file is not None else None)
     typer.echo(json.dumps([g.to_dict() for g in gaps], indent=1) if as_json else gaps_markdown(gaps).rstrip("\n"))
+
+
+@protocol_app.command("curves")
+def curves(paths: list[Path] = typer.Argument(..., help="metrics.jsonl files of trained runs, each with its "
+                                                        "evaluation.json beside it (a sweep's run folders or "
+                                                        "leaderboard/reference-runs)."),
+           as_json: bool = typer.Option(False, "--json")) -> None:
+    """How far each budget carried learning: per method and task, the seeds' mean learning curve at
+    each quarter of the budget, its late plateau, the step it reaches 90% of it, and its late slope."""
+    from offdyn_bench.protocol.curves import curves_markdown, read_curves
+
+    with exit_on_error():
+        summaries = read_curves(paths)
+    typer.echo(json.dumps([s.to_dict() for s in summaries], indent=1) if as_json
+               else curves_markdown(summaries).rstrip("\n"))

@@ -10,11 +10,18 @@ from pathlib import Path
 
 import pytest
 
-from leaderboard.reference_runs import REFERENCE_RUNS_DIR, RECORD_FILES, check_reference_record, publish_reference_runs
+from leaderboard.reference_runs import (
+    REFERENCE_RUNS_DIR,
+    RECORD_FILES,
+    check_reference_curve,
+    check_reference_record,
+    publish_reference_runs,
+)
 from leaderboard.submission import SubmissionError
 
 REPO = Path(__file__).resolve().parents[2]
 PUBLISHED = sorted(REFERENCE_RUNS_DIR.glob("*/*/*/*/evaluation*.json"))
+PUBLISHED_CURVES = sorted(REFERENCE_RUNS_DIR.glob("*/*/*/*/metrics.jsonl"))
 
 
 def _parts(path: Path) -> tuple[str, str, str, str, str]:
@@ -42,6 +49,16 @@ def test_every_published_record_is_a_complete_protocol_evaluation_where_it_lies(
     record = json.loads(path.read_text())
     check_reference_record(path, record, method, task, label, RECORD_FILES[name])
     assert record["budget"] == budget and record["protocol_version"] == "1.0"
+
+
+@pytest.mark.parametrize("path", PUBLISHED_CURVES, ids=lambda p: str(p.relative_to(REFERENCE_RUNS_DIR)))
+def test_every_published_learning_curve_belongs_to_the_training_its_record_scores(path):
+    record = json.loads((path.parent / "evaluation.json").read_text())
+    check_reference_curve(path, record)
+    # The curve's last point is the training's own evaluation of the final policy: the same
+    # policy the record scores, on other episodes, so the two agree in scale.
+    final = json.loads(path.read_text().splitlines()[-1])
+    assert final["step"] == record["steps"]
 
 
 def test_the_shipped_oracle_references_are_the_published_sac_target_runs():
@@ -141,6 +158,58 @@ def test_publishing_copies_records_byte_for_byte_and_again_changes_nothing(sweep
     assert {p.relative_to(tmp_path / "only-target").parts[1] for p in only.written} == {"sac-target"}
 
 
+def _write_curve(run: Path, steps: range, returns=lambda step: [step / 100.0]) -> Path:
+    path = run / "metrics.jsonl"
+    path.write_text("".join(json.dumps({"step": step, "target_return": returns(step), "wall_time_s": step / 50})
+                            + "\n" for step in steps))
+    return path
+
+
+def test_a_trainings_learning_curve_is_published_beside_its_record(sweep_out, tmp_path):
+    trained = sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5" / "seed-0"
+    curve = _write_curve(trained, range(5000, 100001, 5000))
+    _write_curve(sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5" / "seed-9", range(5000, 20001, 5000))
+    dest = tmp_path / "published"
+    report = publish_reference_runs(sweep_out, dest)
+    published = dest / "lite" / "sac-target" / "hopper-gravity-0.5" / "seed-0" / "metrics.jsonl"
+    assert published in report.written and published.read_bytes() == curve.read_bytes()
+    # Only the finished training's curve: the unfinished run publishes nothing.
+    assert [p.relative_to(dest) for p in dest.rglob("metrics.jsonl")] == [published.relative_to(dest)]
+    assert published in publish_reference_runs(sweep_out, dest).unchanged
+    curve.write_text(curve.read_text().replace('"step": 100000, "target_return": [1000.0]',
+                                               '"step": 100000, "target_return": [999.0]'))
+    with pytest.raises(SubmissionError, match=r"1 published record\(s\) differ.*seed-0/metrics.jsonl"):
+        publish_reference_runs(sweep_out, dest)
+    assert json.loads(published.read_text().splitlines()[-1])["target_return"] == [1000.0]
+
+
+@pytest.mark.parametrize("write, message", [
+    (lambda run: _write_curve(run, range(5000, 50001, 5000)),
+     r"the curve ends at step 50000, but the evaluation beside it scores the policy of step 100000"),
+    (lambda run: _write_curve(run, [5000, 15000, 10000, 100000]), r"step 10000 follows step 15000"),
+    (lambda run: _write_curve(run, range(5000, 100001, 5000), lambda step: [1.0, 2.0]),
+     r"target_return has 2 per-seed values; the evaluation next to it has 1 seeds"),
+    (lambda run: _write_curve(run, range(5000, 100001, 5000), lambda step: ["1.0"]),
+     r"step 5000: a target return that is not a finite number"),
+    (lambda run: _write_curve(run, range(5000, 100001, 5000), lambda step: [1e999]), r"Infinity is not valid JSON"),
+    (lambda run: (run / "metrics.jsonl").write_text('{"step": 5000, "target_return": [NaN]}\n'),
+     r"NaN is not valid JSON"),
+    (lambda run: (run / "metrics.jsonl").write_text('{"step": "5000", "target_return": [1.0]}\n'),
+     r"a step that is not a positive integer"),
+    (lambda run: (run / "metrics.jsonl").write_text("\n"), r"no evaluation"),
+    (lambda run: (run / "metrics.jsonl").write_text('[1, 2]\n'), r'expected an object with "step" and "target_return"'),
+])
+def test_publishing_refuses_a_curve_that_is_not_the_scored_trainings_and_writes_nothing(
+        sweep_out, tmp_path, write, message):
+    run = sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5" / "seed-2"
+    write(run)
+    dest = tmp_path / "published"
+    with pytest.raises(SubmissionError, match=message) as caught:
+        publish_reference_runs(sweep_out, dest)
+    assert str(run / "metrics.jsonl") in str(caught.value)
+    assert not dest.exists()
+
+
 def test_a_published_number_changes_only_when_asked(sweep_out, tmp_path):
     dest = tmp_path / "published"
     publish_reference_runs(sweep_out, dest)
@@ -206,8 +275,8 @@ def test_the_command_line_publishes_and_reports(sweep_out, tmp_path):
     result = CliRunner().invoke(app, ["leaderboard", "publish-runs", str(sweep_out), "--to", str(dest)])
     assert result.exit_code == 0, result.output
     written = len(list(dest.rglob("*.json")))
-    assert f"wrote {written} record(s), 0 already published unchanged; 1 run(s) of the sweep not evaluated yet" \
-        in result.output
+    assert f"wrote {written} record(s) and 0 learning curve(s), 0 file(s) already published unchanged; 1 run(s) " \
+        "of the sweep not evaluated yet" in result.output
     result = CliRunner().invoke(app, ["leaderboard", "publish-runs", str(tmp_path), "--to", str(dest)])
     assert result.exit_code == 2 and "no runs/ folder" in result.output
 
