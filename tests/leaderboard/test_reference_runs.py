@@ -78,6 +78,22 @@ def test_the_shipped_oracle_references_are_the_published_sac_target_runs():
             assert record["agent"]["policy_sha256"] == shipped[f"seed-{record['seeds'][0]['seed']}"], task
 
 
+def test_protocol_md_learning_curve_table_is_what_protocol_curves_computes_from_the_published_curves():
+    from offdyn_bench.protocol.curves import curves_markdown, read_curves
+
+    text = (REPO / "PROTOCOL.md").read_text()
+    header = "| budget/method/task | seeds |"
+    assert header in text, "PROTOCOL.md §9 shows the published runs' learning curves"
+    shown = []
+    for line in text[text.index(header):].splitlines()[2:]:
+        if not line.strip().startswith("|"):
+            break
+        shown.append(line.strip())
+    computed = [line for line in curves_markdown(read_curves(PUBLISHED_CURVES)).splitlines()[2:]
+                if line.startswith("|")]
+    assert shown == computed
+
+
 def _protocol_gap_tables() -> list[tuple[str, dict[str, tuple[str, ...]]]]:
     """PROTOCOL.md §9's gap tables (one per robot): the text before each, and its rows (task -> its
     cells after the task)."""
