@@ -8,7 +8,7 @@ and returns the submission document, validated.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ from leaderboard.submission import (
     parse_json_strict,
     validate_submission,
 )
+from offdyn_bench.errors import OffdynError
 
 EVALUATION_FILE = "evaluation.json"
 METRICS_FILE = "metrics.jsonl"
@@ -50,8 +51,9 @@ def read_evaluation_strict(path: Path) -> dict[str, Any]:
     return document
 
 
-def read_learning_curve(path: Path, seed_count: int) -> list[dict[str, Any]]:
-    """The ``step``/``target_return`` pairs of a ``metrics.jsonl`` (baselines/train.py writes them)."""
+def read_learning_curve(path: Path, seed_count: int | None) -> list[dict[str, Any]]:
+    """The ``step``/``target_return`` pairs of a ``metrics.jsonl`` (baselines/train.py writes them);
+    ``seed_count``: the per-seed values every line must hold (None: as many as the first line)."""
     curve = []
     try:
         lines = path.read_text().splitlines()
@@ -65,6 +67,8 @@ def read_learning_curve(path: Path, seed_count: int) -> list[dict[str, Any]]:
             raise SubmissionError(f"{path}:{number}: expected an object with \"step\" and \"target_return\" "
                                   "(the metrics.jsonl of `offdyn-bench train`)")
         returns = record["target_return"]
+        if seed_count is None and isinstance(returns, list):
+            seed_count = len(returns)
         if not isinstance(returns, list) or len(returns) != seed_count:
             raise SubmissionError(f"{path}:{number}: target_return has "
                                   f"{len(returns) if isinstance(returns, list) else 'no'} per-seed values; the "
@@ -72,6 +76,19 @@ def read_learning_curve(path: Path, seed_count: int) -> list[dict[str, Any]]:
                                   "submit without curves)")
         curve.append({"step": record["step"], "target_return": returns})
     return curve
+
+
+def merged_learning_curve(paths: Sequence[Path], seed_counts: Sequence[int | None]) -> list[dict[str, Any]] | None:
+    """The learning curves of several runs' ``metrics.jsonl`` (``seed_counts`` seeds each), their
+    seeds side by side in the given order; None when a run has no curve or the runs were evaluated
+    at different steps (their curves cannot be put side by side)."""
+    if not all(path.is_file() for path in paths):
+        return None
+    curves = [read_learning_curve(path, count) for path, count in zip(paths, seed_counts, strict=True)]
+    if len({tuple(point["step"] for point in curve) for curve in curves}) != 1:
+        return None
+    return [{"step": point["step"], "target_return": [x for curve in curves for x in curve[index]["target_return"]]}
+            for index, point in enumerate(curves[0])]
 
 
 def _describe_difference(field: str, values: Mapping[Path, Any]) -> str:
@@ -94,8 +111,10 @@ def _dataset_reference(provenance: Any) -> dict[str, str] | None:
 
 def assemble_submission(runs_dir: Path, *, method: str, description: str = "", code_url: str | None = None,
                         commit: str | None = None, track: str | None = None, budget: str | None = None,
-                        learning_curves: bool = True) -> Submission:
-    """The validated submission of the ``evaluation.json`` files under ``runs_dir`` (one per task)."""
+                        learning_curves: bool = True, merge_seeds: bool = False) -> Submission:
+    """The validated submission of the ``evaluation.json`` files under ``runs_dir`` (one per task;
+    ``merge_seeds``: or one per training seed, as a sweep and ``leaderboard/reference-runs`` keep
+    them, each task's merged into one after checking they were evaluated alike)."""
     from offdyn_bench import protocol
 
     if not runs_dir.is_dir():
@@ -116,12 +135,15 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
             reasons = "; ".join(str(note) for note in evaluation.get("notes") or []) or "see its notes"
             raise SubmissionError(f"{path} is not a protocol result: {reasons}")
 
-    by_task: dict[str, Path] = {}
+    paths_of: dict[str, list[Path]] = {}
     for path, evaluation in evaluations.items():
-        task = evaluation["task"]
-        if task in by_task:
-            raise SubmissionError(f"two evaluations of {task}: {by_task[task]} and {path}; keep one per task")
-        by_task[task] = path
+        paths_of.setdefault(evaluation["task"], []).append(path)
+    for task, task_paths in paths_of.items():
+        if len(task_paths) > 1 and not merge_seeds:
+            raise SubmissionError(f"two evaluations of {task}: {task_paths[0]} and {task_paths[1]}; keep one per "
+                                  "task, or pass --merge-seeds where they are separate training seeds of one "
+                                  "method (a sweep's run folders, leaderboard/reference-runs)")
+    by_task = {task: task_paths[0] for task, task_paths in paths_of.items()}
     for field in _SHARED_FIELDS:
         values = {path: evaluation[field] for path, evaluation in evaluations.items()}
         if len({repr(v) for v in values.values()}) > 1:
@@ -154,6 +176,16 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
     for task in core:
         path = by_task[task]
         evaluation = evaluations[path]
+        # One training seed per record (a sweep's layout): in seed order, merged as the sweep merges them.
+        task_paths = sorted(paths_of[task], key=lambda p: min((s.get("seed", 0) for s in evaluations[p]["seeds"]
+                                                                if isinstance(s, dict)), default=0))
+        if len(task_paths) > 1:
+            from offdyn_bench.sweep.submission import merge_evaluations
+
+            try:
+                evaluation = merge_evaluations([evaluations[p] for p in task_paths], task_paths)
+            except OffdynError as error:
+                raise SubmissionError(str(error)) from None
         entry: dict[str, Any] = {
             "task_version": evaluation["task_version"],
             "target_env_id": evaluation["target_env_id"],
@@ -165,9 +197,13 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
         policy_sha256 = (evaluation.get("agent") or {}).get("policy_sha256")
         if policy_sha256:
             entry["policy_sha256"] = policy_sha256
-        metrics = path.parent / METRICS_FILE
-        if learning_curves and metrics.is_file():
-            entry["learning_curve"] = read_learning_curve(metrics, len(evaluation["seeds"]))
+        if learning_curves:
+            # A merged task shows a curve only when every seed's run has one (a run that scores
+            # another run's policy, as RL on source does on its second task, has none).
+            curve = merged_learning_curve([p.parent / METRICS_FILE for p in task_paths],
+                                          [len(evaluations[p]["seeds"]) for p in task_paths])
+            if curve is not None:
+                entry["learning_curve"] = curve
         tasks[task] = entry
 
     method_entry: dict[str, Any] = {"name": method, "description": description}

@@ -43,6 +43,9 @@ def submit_command(
     track: Annotated[Optional[str], typer.Option(help="Expected track; default: the evaluations' own.")] = None,
     budget: Annotated[Optional[str], typer.Option(help="Expected budget; default: the evaluations' own.")] = None,
     learning_curves: Annotated[bool, typer.Option(help="Include metrics.jsonl learning curves when present.")] = True,
+    merge_seeds: Annotated[bool, typer.Option(
+        help="Take one evaluation per training seed (a sweep's run folders, leaderboard/reference-runs/<budget>/"
+             "<method>) and merge each task's, checked to be evaluated alike.")] = False,
     force: Annotated[bool, typer.Option(help="Replace an existing --out file.")] = False,
 ) -> None:
     """Assemble a submission from the evaluation.json files under RUNS_DIR and validate it."""
@@ -55,7 +58,7 @@ def submit_command(
             raise SubmissionError(f"{out} exists; pass --force to replace it or choose another --out")
         submission = assemble_submission(runs_dir, method=method, description=description, code_url=code_url,
                                          commit=commit, track=track, budget=budget,
-                                         learning_curves=learning_curves)
+                                         learning_curves=learning_curves, merge_seeds=merge_seeds)
         write_file_atomic(out, canonical_json(submission.document))
         seeds = len(next(iter(submission.tasks.values())).seeds)
         typer.echo(f"wrote {out}: {submission.method} on {submission.track}/{submission.budget}, "

@@ -62,31 +62,21 @@ def merge_evaluations(records: Sequence[dict[str, Any]], sources: Sequence[Path]
     return merged
 
 
-def _read_curve(path: Path) -> dict[int, list[float]] | None:
-    """``step -> per-seed target returns`` of a run's metrics.jsonl (None when it cannot be read)."""
-    curve = {}
-    try:
-        for line in path.read_text().splitlines():
-            if line.strip():
-                entry = json.loads(line)
-                curve[int(entry["step"])] = [float(x) for x in entry["target_return"]]
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError):
-        return None
-    return curve
-
-
 def merged_curve_lines(runs: Sequence[Run]) -> list[str] | None:
     """The learning curves of ``runs`` (in seed order) as one metrics.jsonl, or None when a run
-    has none or the runs were evaluated at different steps."""
-    curves = [_read_curve(run.folder / METRICS_FILE) for run in runs]
-    if any(curve is None for curve in curves) or len({tuple(curve) for curve in curves}) != 1:  # type: ignore[arg-type]
+    has none, an unreadable one, or the runs were evaluated at different steps."""
+    from leaderboard.assemble import merged_learning_curve
+    from leaderboard.submission import SubmissionError
+
+    try:
+        curve = merged_learning_curve([run.folder / METRICS_FILE for run in runs], [None] * len(runs))
+    except SubmissionError:
         return None
-    lines = []
-    for step in curves[0]:  # type: ignore[union-attr]
-        returns = [x for curve in curves for x in curve[step]]  # type: ignore[index]
-        lines.append(json.dumps({"step": step, "target_return": returns,
-                                 "target_return_mean": sum(returns) / len(returns)}))
-    return lines
+    if curve is None:
+        return None
+    return [json.dumps({"step": point["step"], "target_return": point["target_return"],
+                        "target_return_mean": sum(point["target_return"]) / len(point["target_return"])})
+            for point in curve]
 
 
 def write_submission_folder(spec: SweepSpec, method: str, runs: Sequence[Run]) -> Path:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -133,3 +134,55 @@ def test_cli_error_is_one_line_with_exit_code_2(tmp_path: Path, write_runs) -> N
     assert result.output.startswith("error: no evaluation of walker2d-gravity-2.0, ant-gravity-0.1")
     assert result.output.count("\n") == 1
     assert not out.exists()
+
+
+def _split_per_seed(runs: Path) -> Path:
+    """The runs of ``write_runs`` as a sweep keeps them: one folder, evaluation and curve per training seed."""
+    per_seed = runs.parent / "per-seed"
+    for path in sorted(runs.rglob("evaluation.json")):
+        record = json.loads(path.read_text())
+        curve = [json.loads(line) for line in (path.parent / "metrics.jsonl").read_text().splitlines()]
+        for index, seed in enumerate(record["seeds"]):
+            folder = per_seed / record["method"] / record["task"] / f"seed-{seed['seed']}"
+            folder.mkdir(parents=True)
+            part = record | {"seeds": [seed], "agent": record["agent"] | {"policy_sha256": {str(seed["seed"]): "cd" * 32}}}
+            (folder / "evaluation.json").write_text(json.dumps(part))
+            (folder / "metrics.jsonl").write_text("".join(
+                json.dumps(line | {"target_return": [line["target_return"][index]]}) + "\n" for line in curve))
+    return per_seed
+
+
+def test_a_sweeps_per_seed_runs_merge_into_the_submission_of_one_folder(tmp_path: Path, write_runs) -> None:
+    write_runs(tmp_path / "runs")
+    per_seed = _split_per_seed(tmp_path / "runs")
+    whole = assemble_submission(tmp_path / "runs", method="dap")
+    _fails(per_seed, "two evaluations of ant-gravity-0.1", "pass --merge-seeds")
+    merged = assemble_submission(per_seed, method="dap", merge_seeds=True)
+    for task, result in whole.tasks.items():
+        assert merged.tasks[task].returns.tolist() == result.returns.tolist(), task
+        assert merged.tasks[task].learning_curve == result.learning_curve, task
+        assert merged.document["tasks"][task]["policy_sha256"] == {str(s): "cd" * 32 for s in range(3)}
+    # The command line, with a curve missing for one seed: that task is submitted without a curve.
+    (per_seed / "dap" / "walker2d-gravity-2.0" / "seed-1" / "metrics.jsonl").unlink()
+    out = tmp_path / "dap.json"
+    result = _submit(str(per_seed), "--method", "dap", "--merge-seeds", "--out", str(out))
+    assert result.exit_code == 0, result.output
+    assert "3 tasks x 3 seeds" in result.output
+    submission = read_submission_file(out)
+    assert not submission.tasks["walker2d-gravity-2.0"].learning_curve
+    assert submission.tasks["hopper-gravity-0.5"].learning_curve == whole.tasks["hopper-gravity-0.5"].learning_curve
+
+
+def test_per_seed_runs_that_do_not_belong_together_are_refused(tmp_path: Path, write_runs) -> None:
+    write_runs(tmp_path / "runs")
+    per_seed = _split_per_seed(tmp_path / "runs")
+    twice = per_seed / "dap" / "ant-gravity-0.1" / "again"
+    twice.mkdir()
+    (twice / "evaluation.json").write_text((per_seed / "dap" / "ant-gravity-0.1" / "seed-2" / "evaluation.json")
+                                           .read_text())
+    _fails(per_seed, "hold a training seed twice", merge_seeds=True)
+    shutil.rmtree(twice)
+    path = per_seed / "dap" / "ant-gravity-0.1" / "seed-2" / "evaluation.json"
+    record = json.loads(path.read_text())
+    path.write_text(json.dumps(record | {"episode_seeds": record["episode_seeds"][::-1]}))
+    _fails(per_seed, "the evaluations of dap on ant-gravity-0.1 disagree on episode_seeds", merge_seeds=True)
