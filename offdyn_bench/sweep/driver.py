@@ -146,20 +146,28 @@ class _Progress:
 
     The ETA weighs each remaining run by the mean wall time of finished runs of its kind: a run
     that trains, or one that only scores another run's policy (seconds, not the training's
-    minutes; counting it as a training would put a source-only sweep's ETA hours late)."""
+    minutes; counting it as a training would put a source-only sweep's ETA hours late). A running
+    run counts only the part of that mean it has not used yet."""
 
-    def __init__(self, echo: Echo | None, total: int, kinds: dict[str, str] | None = None) -> None:
-        self.echo, self.total = echo, total
+    def __init__(self, echo: Echo | None, total: int, kinds: dict[str, str] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.echo, self.total, self.clock = echo, total, clock
         self.kinds = kinds or {}
         """Per run id, ``train`` or ``score``; a run not named trains."""
         self.walls: dict[str, list[float]] = {"train": [], "score": []}
+        self.started: dict[str, float] = {}
+        """Per run id in flight, when its current attempt started (``clock``)."""
         self.last_line, self.last_time = "", 0.0
+
+    def start(self, run_id: str) -> None:
+        self.started[run_id] = self.clock()
 
     def kind(self, run_id: str) -> str:
         return self.kinds.get(run_id, "train")
 
     def add_wall(self, run_id: str, wall: float) -> None:
         self.walls[self.kind(run_id)].append(wall)
+        self.started.pop(run_id, None)
 
     def line(self, records: dict[str, RunRecord], capacity: int) -> str:
         counts = {status: 0 for status in ("done", "running", "failed", "pending")}
@@ -176,7 +184,14 @@ class _Progress:
                 walls = self.walls[kind] or every
                 return sum(walls) / len(walls)
 
-            work = sum(mean_wall(self.kind(run_id)) for run_id in remaining)
+            def left(run_id: str) -> float:
+                expected = mean_wall(self.kind(run_id))
+                if records[run_id].status == "running" and run_id in self.started:
+                    # Past its kind's mean it is taken to be about done, not to take the mean again.
+                    return max(0.0, expected - (self.clock() - self.started[run_id]))
+                return expected
+
+            work = sum(left(run_id) for run_id in remaining)
             eta = work / max(1, min(capacity, len(remaining)))
         return (f"sweep: {counts['done']}/{self.total} done, {counts['running']} running, {counts['failed']} failed, "
                 f"{counts['pending']} pending; ETA {format_duration(eta)}")
@@ -298,6 +313,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                             record.status = "running"
                             record.attempts += 1
                             in_flight[engine.submit(run, record.attempts)] = run
+                            progress.start(run.run_id)
                             launched += 1
                         save()
                         progress.show(records, capacity)

@@ -275,6 +275,14 @@ def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
     progress.add_wall("score-0", 6.0)
     assert progress.line(records, capacity=1) == "sweep: 2/6 done, 1 running, 0 failed, 3 pending; ETA 20m18s"
     assert progress.line(records, capacity=2).endswith("ETA 10m09s")  # two workers share the work
+    # A running training 15 minutes in has 5 of its 20 left; one past the mean counts as about done.
+    now = [100.0]
+    progress.clock = lambda: now[0]
+    progress.start("train-1")
+    now[0] += 900.0
+    assert progress.line(records, capacity=1).endswith("ETA 5m18s")
+    now[0] += 3600.0
+    assert progress.line(records, capacity=1).endswith("ETA 18s")
     for run_id in ("train-1", "score-1", "score-2", "score-3"):
         records[run_id].status = "done"
     assert progress.line(records, capacity=1).endswith("ETA 0s")
