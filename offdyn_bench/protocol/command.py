@@ -237,7 +237,8 @@ def curves(paths: list[Path] = typer.Argument(..., help="metrics.jsonl files of 
                                                         "leaderboard/reference-runs)."),
            as_json: bool = typer.Option(False, "--json")) -> None:
     """How far each budget carried learning: per method and task, the seeds' mean learning curve at
-    each quarter of the budget, its late plateau, the step it reaches 90% of it, and its late slope."""
+    each quarter of the budget, its late plateau, the step from which it stays above 90% of it, and its
+    late slope."""
     from offdyn_bench.protocol.curves import curves_markdown, read_curves
 
     with exit_on_error():

@@ -9,7 +9,7 @@ method and task, and says how far the budget carried learning:
 
 - the mean return at each quarter of the budget;
 - the late plateau: the mean over the last quarter (a single noisy final point is no plateau);
-- the first step at which the seeds' mean curve reaches 90% of that plateau;
+- the step from which the seeds' mean curve stays at or above 90% of that plateau;
 - the late slope: a least-squares line through the curve's second half, as the change per tenth of
   the budget in percent of the plateau. Near zero, learning has levelled off within the budget;
   clearly positive, the budget stops it while the policy still improves.
@@ -62,12 +62,17 @@ class CurveSummary:
 
     @property
     def steps_to_plateau(self) -> int | None:
-        """The first step at which the mean curve reaches 90% of the plateau (None: the plateau is
-        not a positive return, so a fraction of it means nothing)."""
+        """The step from which the mean curve stays at or above 90% of the plateau. None: the
+        plateau is not a positive return (a fraction of it means nothing), or the final
+        evaluation is below 90% of it (the curve has not settled). "Stays": an early high point
+        that is lost again (a fresh Ant standing still earns its healthy reward) is no learning."""
         plateau = self.plateau
         if plateau <= 0:
             return None
-        return next(step for step, value in zip(self.steps, self.mean_returns) if value >= PLATEAU_FRACTION * plateau)
+        below = [index for index, value in enumerate(self.mean_returns) if value < PLATEAU_FRACTION * plateau]
+        if not below:
+            return self.steps[0]
+        return self.steps[below[-1] + 1] if below[-1] + 1 < len(self.steps) else None
 
     @property
     def late_slope(self) -> float | None:
@@ -137,7 +142,7 @@ def _cell(value: float | int | None, fmt: str = "{:.1f}") -> str:
 
 def curves_markdown(summaries: Sequence[CurveSummary]) -> str:
     lines = ["| budget/method/task | seeds | at 1/4 | at 2/4 | at 3/4 | at 4/4 | plateau (last 1/4) | "
-             "steps to 90% of it | late slope (% of plateau per 1/10) |",
+             "stays above 90% of it from step | late slope (% of plateau per 1/10) |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for summary in summaries:
         quarters = " | ".join(f"{value:.1f}" for value in summary.quarter_returns)

@@ -35,7 +35,7 @@ def write_run(folder: Path, seeds: dict[int, list[float]], *, steps=STEPS, task:
 
 def test_a_curve_still_rising_at_the_end_of_the_budget():
     # Return = step / 100: 250 at a quarter, 1000 at the end; the last quarter (80k, 90k, 100k)
-    # averages 900; 90% of it (810) is first reached at 90k; the slope, 0.01 per step, is 100
+    # averages 900; the curve stays above 90% of it (810) from 90k; the slope, 0.01 per step, is 100
     # per tenth of the budget (10k steps): 11.1% of the plateau.
     summary = CurveSummary("lite", "sac-target", "t", (0,), STEPS, tuple(step / 100 for step in STEPS))
     assert summary.quarter_returns == pytest.approx((250.0, 500.0, 750.0, 1000.0))
@@ -51,6 +51,17 @@ def test_a_curve_that_levelled_off_early():
     assert summary.quarter_returns == pytest.approx((500.0, 500.0, 500.0, 500.0))
     assert (summary.plateau, summary.steps_to_plateau) == (pytest.approx(500.0), 20_000)
     assert summary.late_slope == pytest.approx(0.0, abs=1e-9)
+
+
+def test_an_early_high_point_that_is_lost_again_is_not_the_plateau_reached():
+    # An Ant standing still at first (900), then falling, then climbing to 40: the last quarter
+    # averages 40; the curve stays above 36 only from 80k on, not from the first evaluation.
+    returns = (900.0, -10.0, 5.0, 10.0, 20.0, 25.0, 30.0, 40.0, 40.0, 40.0)
+    assert CurveSummary("lite", "sac-source", "t", (0,), STEPS, returns).steps_to_plateau == 80_000
+    # A final evaluation below 90% of the plateau: the curve has not settled.
+    falling = (0.0,) * 7 + (100.0, 100.0, 50.0)
+    summary = CurveSummary("lite", "sac-source", "t", (0,), STEPS, falling)
+    assert summary.plateau == pytest.approx(250 / 3) and summary.steps_to_plateau is None
 
 
 def test_a_plateau_below_zero_has_no_fraction_to_reach():
