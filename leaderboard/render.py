@@ -191,12 +191,15 @@ def _learning_curve_plot(board: Board) -> str | None:
     rows = math.ceil(len(board.tasks) / columns)
     figure = Figure(figsize=(3.6 * columns, 2.8 * rows))
     ordered = sorted(with_curves, key=lambda e: e.submission.key)
+    legend_shown = False
     for position, task in enumerate(board.tasks):
         axes = figure.add_subplot(rows, columns, position + 1)
+        plotted = False
         for index, entry in enumerate(ordered):
             curve = entry.submission.tasks[task].learning_curve
             if not curve:
                 continue
+            plotted = True
             steps = np.array([p.step for p in curve], dtype=np.float64)
             values = np.array([p.target_return for p in curve], dtype=np.float64)
             color = _COLORS[index % len(_COLORS)]
@@ -207,8 +210,16 @@ def _learning_curve_plot(board: Board) -> str | None:
         axes.set_title(task, fontsize="small")
         axes.tick_params(labelsize="x-small")
         axes.grid(alpha=0.3)
-        if position == 0:
+        if not plotted:
+            # A submission may carry curves for some tasks only (RL on source's second task scores
+            # a policy trained for another): say so rather than leave an empty frame.
+            axes.text(0.5, 0.5, "no learning curve submitted", ha="center", va="center", fontsize="x-small",
+                      transform=axes.transAxes)
+            axes.set_xticks([])
+            axes.set_yticks([])
+        elif not legend_shown:
             axes.legend(fontsize="x-small")
+            legend_shown = True
     figure.supxlabel("training step")
     figure.supylabel("target return (raw)")
     figure.tight_layout()

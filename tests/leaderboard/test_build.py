@@ -179,3 +179,22 @@ def test_serve_refuses_bad_options_before_opening_anything(tmp_path: Path, args:
     result = CliRunner().invoke(leaderboard_app, ["serve", "--db", f"sqlite:///{db}", *args])
     assert result.exit_code == 2 and re.search("error: " + message, result.output), result.output
     assert not db.exists()
+
+
+def test_curves_for_some_tasks_only_plot_without_warnings(tmp_path: Path, references_file: Path,
+                                                          make_submission) -> None:
+    # RL on source submits curves only for the tasks it trained on: the first task of the board
+    # may have none, and its frame says so instead of carrying a legend with nothing in it.
+    import warnings
+
+    from leaderboard.render import _learning_curve_plot
+
+    document = make_submission("alpha", curves=True)
+    del document["tasks"]["hopper-gravity-0.5"]["learning_curve"]
+    store = tmp_path / "store"
+    write_submission(store, validate_submission(document))
+    board = score_board(load_store(store), references=references_file)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        image = _learning_curve_plot(board)
+    assert image is not None and base64.b64decode(image).startswith(b"\x89PNG")

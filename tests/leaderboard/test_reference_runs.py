@@ -433,3 +433,25 @@ def test_publishing_refuses_a_destination_under_a_file(sweep_out, tmp_path):
     with pytest.raises(SubmissionError, match=r"--to .*a-file/published: .*a-file is a file; expected a folder"):
         publish_reference_runs(sweep_out, blocker / "published")
     assert blocker.read_text() == "not a folder"
+
+
+def _stored_reference_submissions() -> list[Path]:
+    from leaderboard.store import DEFAULT_STORE
+    from offdyn_bench.protocol import REFERENCE_METHODS
+
+    return [path for path in sorted(DEFAULT_STORE.glob("*.json")) if path.name.split("__")[0] in REFERENCE_METHODS]
+
+
+@pytest.mark.parametrize("path", _stored_reference_submissions(), ids=lambda p: p.name)
+def test_a_stored_reference_submission_is_what_its_published_runs_assemble_to(path):
+    """No number of a reference method's submission is put in the store by hand: it is exactly
+    `leaderboard submit leaderboard/reference-runs/<budget>/<method> --merge-seeds` of the runs
+    the repository publishes (its description aside)."""
+    from leaderboard.assemble import assemble_submission
+
+    stored = json.loads(path.read_text())
+    method, track, budget = path.stem.split("__")
+    assembled = assemble_submission(REFERENCE_RUNS_DIR / budget / method, method=method, track=track,
+                                    merge_seeds=True, description=stored["method"]["description"]).document
+    assert stored == json.loads(json.dumps(assembled))
+
