@@ -50,6 +50,10 @@ class PublishReport:
     """The ``compute.json`` files updated with the published runs' compute (from the sweep's state)."""
 
 
+def _is_finite_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def check_reference_record(path: Path, record: dict[str, Any], method: str, task: str, label: str,
                            side: str) -> None:
     """Raise :class:`SubmissionError` unless ``record`` (read from ``path``) is a complete protocol
@@ -85,14 +89,15 @@ def check_reference_record(path: Path, record: dict[str, Any], method: str, task
         if not isinstance(returns, list) or len(returns) < EVAL_EPISODES:
             raise fail(f"seed {entry['seed']}: {len(returns) if isinstance(returns, list) else 'no'} episodes; "
                        f"the protocol scores at least {EVAL_EPISODES}")
-        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in returns):
+        if not all(_is_finite_number(x) for x in returns):
             raise fail(f"seed {entry['seed']}: a return that is not a finite number")
 
 
-def check_reference_curve(path: Path, record: dict[str, Any]) -> None:
-    """Raise :class:`SubmissionError` unless ``path`` is the whole learning curve of the training
-    whose final policy ``record`` scores: one finite per-seed target return per evaluation, at
-    strictly increasing steps that end at the record's training steps."""
+def check_reference_curve(path: Path, record: dict[str, Any]) -> list[dict[str, Any]]:
+    """The learning curve at ``path`` (``step``/``target_return`` points), read once; raise
+    :class:`SubmissionError` unless it is the whole curve of the training whose final policy
+    ``record`` scores: one finite per-seed target return per evaluation, at strictly increasing
+    steps that end at the record's training steps."""
     curve = read_learning_curve(path, len(record["seeds"]))
     steps = [point["step"] for point in curve]
     if not curve or not all(isinstance(step, int) and not isinstance(step, bool) and step > 0 for step in steps):
@@ -107,8 +112,9 @@ def check_reference_curve(path: Path, record: dict[str, Any]) -> None:
                               f"policy of step {record.get('steps')}; publish the curve of the training it scores")
     for point in curve:
         returns = point["target_return"]
-        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in returns):
+        if not all(_is_finite_number(x) for x in returns):
             raise SubmissionError(f"{path}: step {point['step']}: a target return that is not a finite number")
+    return curve
 
 
 def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, methods: Sequence[str] = (),

@@ -96,7 +96,7 @@ class CurveSummary:
 def read_curves(paths: Sequence[Path]) -> list[CurveSummary]:
     """One summary per (budget, method, task) of the ``metrics.jsonl`` files ``paths``, each read
     with the ``evaluation.json`` beside it and checked as ``leaderboard publish-runs`` checks it."""
-    from leaderboard.assemble import read_evaluation_strict, read_learning_curve
+    from leaderboard.assemble import read_evaluation_strict
     from leaderboard.reference_runs import check_reference_curve
 
     if not paths:
@@ -110,8 +110,7 @@ def read_curves(paths: Sequence[Path]) -> list[CurveSummary]:
             raise ProtocolError(f"{path}: no {EVALUATION_BESIDE} beside it; a curve is read with the evaluation of "
                                 "the run it belongs to (its method, task, budget and seeds): evaluate the run first")
         record = read_evaluation_strict(record_path)
-        check_reference_curve(path, record)
-        curve = read_learning_curve(path, len(record["seeds"]))
+        curve = check_reference_curve(path, record)
         steps = tuple(point["step"] for point in curve)
         key = (str(record.get("budget")), str(record["method"]), str(record["task"]))
         for index, seed in enumerate(record["seeds"]):
