@@ -8,9 +8,11 @@ only ever locked, never deleted (deleting a lock file lets two processes lock tw
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import fcntl
 import json
+import math
 import os
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
@@ -21,6 +23,40 @@ from offdyn_bench.errors import OffdynError
 
 CONFIG_FILE, METRICS_FILE, RESULT_FILE = "config.json", "metrics.jsonl", "result.json"
 LOCK_FILE = ".lock"
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainingCompute:
+    """What a training took, summed over its attempts (a first run and every resume)."""
+
+    wall_time_s: float
+    cpu_time_s: float
+    """Process CPU time: every thread's, so it exceeds the wall time when torch uses several."""
+    attempts: int
+    complete: bool
+    """False when the run resumed from a checkpoint written before checkpoints carried compute:
+    the attempts before it are then missing from the times."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"wall_time_s": round(self.wall_time_s, 3), "cpu_time_s": round(self.cpu_time_s, 3),
+                "attempts": self.attempts, "complete": self.complete}
+
+    @classmethod
+    def parse(cls, stored: object) -> TrainingCompute | None:
+        """The compute a checkpoint's counters or a ``result.json`` hold under ``compute``, or None
+        when there is none (written before compute was recorded) or it is something else than
+        non-negative finite times, a positive attempt count and a completeness flag."""
+        if not isinstance(stored, dict):
+            return None
+        times = [stored.get("wall_time_s"), stored.get("cpu_time_s")]
+        attempts, complete = stored.get("attempts"), stored.get("complete")
+        if not all(isinstance(t, int | float) and not isinstance(t, bool) and math.isfinite(t) and t >= 0
+                   for t in times):
+            return None
+        if not (isinstance(attempts, int) and not isinstance(attempts, bool) and attempts > 0
+                and isinstance(complete, bool)):
+            return None
+        return cls(float(times[0]), float(times[1]), attempts, complete)
 
 
 def check_writable(out: Path) -> None:

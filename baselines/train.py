@@ -10,7 +10,8 @@
 * ``checkpoints/step_<N>/`` -- safetensors state (networks, optimizers, buffers, random streams)
   with the sha256 of its files; the two newest are kept (:mod:`baselines.checkpoint`);
 * ``result.json`` -- the final per-seed, per-episode target returns, versions, task and dataset(s),
-  and ``warnings`` (e.g. a budget too short for the method to make any update);
+  ``warnings`` (e.g. a budget too short for the method to make any update) and ``compute``: the
+  training's wall and CPU seconds over all its attempts (:class:`baselines.run_folder.TrainingCompute`);
 * ``.lock`` -- locked while a process trains in the folder, so a second one is refused.
 
 Every argument and config value is checked before anything is written, so bad input leaves no
@@ -26,6 +27,11 @@ running training episodes (as time-limit truncations, so the critics still boots
 uninterrupted run does the same at the same steps. A damaged newest checkpoint (truncated,
 missing files, flipped bytes) is reported and the run resumes from the one before it; learning-curve
 lines after the resumed step, and a line cut off by the kill, are dropped.
+
+Compute is carried across resumes: each checkpoint stores the wall and CPU time spent so far, so a
+resumed run's ``metrics.jsonl`` times and its ``result.json`` compute count every attempt (each up to
+the checkpoint it was resumed from: steps a killed attempt took after that are done again, and
+counted once).
 """
 
 from __future__ import annotations
@@ -48,8 +54,9 @@ from baselines.checkpoint import (CHECKPOINT_DIR, STATE_FILE, TRAINER_FILE, Dama
 from baselines.data import load_dataset
 from baselines.method import Method, MethodContext
 from baselines.networks import mlp
-from baselines.run_folder import (CONFIG_FILE, METRICS_FILE, RESULT_FILE, check_writable, holds_files, read_config,
-                                  read_metrics, run_folder_lock, write_json_atomic, write_lines_atomic)
+from baselines.run_folder import (CONFIG_FILE, METRICS_FILE, RESULT_FILE, TrainingCompute, check_writable,
+                                  holds_files, read_config, read_metrics, run_folder_lock, write_json_atomic,
+                                  write_lines_atomic)
 from offdyn_bench.envs import flat_observations
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.protocol.definition import ProtocolError
@@ -185,7 +192,8 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
                   "returns": {str(s): [float(x) for x in final_returns[i]] for i, s in enumerate(seeds)},
                   "mean_return": float(final_returns.mean()), "versions": versions(),
                   "config": settings["config"], "warnings": warnings, "track": plan.track, "budget": plan.budget,
-                  "target_steps_per_seed": loop.target_steps_taken(steps), "device": device}
+                  "target_steps_per_seed": loop.target_steps_taken(steps), "device": device,
+                  "compute": loop.clock.now().to_dict()}
         if source_provenance is not None:
             result["source_dataset"] = source_provenance
         write_json_atomic(out / RESULT_FILE, result)
@@ -349,6 +357,22 @@ class _Envs:
         self.reset_all()
 
 
+class _Clock:
+    """This attempt's wall and CPU time on top of what earlier attempts spent."""
+
+    def __init__(self) -> None:
+        self.before = TrainingCompute(0.0, 0.0, 0, True)
+        self.wall_start, self.cpu_start = time.perf_counter(), time.process_time()
+
+    def resumed(self, before: TrainingCompute | None) -> None:
+        self.before = before if before is not None else TrainingCompute(0.0, 0.0, 1, False)
+
+    def now(self) -> TrainingCompute:
+        return TrainingCompute(self.before.wall_time_s + time.perf_counter() - self.wall_start,
+                               self.before.cpu_time_s + time.process_time() - self.cpu_start,
+                               self.before.attempts + 1, self.before.complete)
+
+
 class _Loop:
     def __init__(self, method: Method, pair: TaskPair, seeds: Sequence[int], out: Path,
                  target_step_limit: int | None = None, device: str = "cpu") -> None:
@@ -360,7 +384,7 @@ class _Loop:
         for envs in (self.train_envs, self.target_envs):
             if envs is not None:
                 envs.reset_all()
-        self.started = time.perf_counter()
+        self.clock = _Clock()
 
     def step(self, step: int) -> dict[str, torch.Tensor]:
         method = self.method
@@ -406,10 +430,11 @@ class _Loop:
         return returns
 
     def log(self, step: int, returns: np.ndarray, metrics: Mapping[str, torch.Tensor]) -> None:
+        spent = self.clock.now()
         line = {"step": step, "target_return": [float(x) for x in returns.mean(axis=1)],
                 "target_return_mean": float(returns.mean()),
                 "train": {k: float(torch.as_tensor(v).float().mean()) for k, v in metrics.items()},
-                "wall_time_s": round(time.perf_counter() - self.started, 3)}
+                "wall_time_s": round(spent.wall_time_s, 3), "cpu_time_s": round(spent.cpu_time_s, 3)}
         with open(self.out / METRICS_FILE, "a") as f:
             f.write(json.dumps(line) + "\n")
 
@@ -420,7 +445,8 @@ class _Loop:
                 envs.end_episodes()
         trainer = {"step": step,
                    "train_episodes": self.train_envs.episodes if self.train_envs else None,
-                   "target_episodes": self.target_envs.episodes if self.target_envs else None}
+                   "target_episodes": self.target_envs.episodes if self.target_envs else None,
+                   "compute": self.clock.now().to_dict()}
         save_checkpoint(self.out, step, self.method.state_dict(), trainer)
 
     def restore(self) -> tuple[int, list[str]]:
@@ -473,6 +499,7 @@ class _Loop:
             if envs is not None:
                 envs.episodes = list(episodes[key])
                 envs.reset_all()
+        self.clock.resumed(TrainingCompute.parse(trainer.get("compute")))
         return checkpoint_step(path)
 
 

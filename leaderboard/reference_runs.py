@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from baselines.run_folder import RESULT_FILE, TrainingCompute
 from leaderboard.assemble import METRICS_FILE, read_evaluation_strict, read_learning_curve
 from leaderboard.store import write_file_atomic
 from leaderboard.submission import SubmissionError
@@ -135,6 +136,7 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
         folders = [folder for folder in folders if folder.parts[-3] in methods]
     plan: list[tuple[Path, Path, bytes]] = []
     unfinished = []
+    trained: dict[str, TrainingCompute] = {}
     for folder in folders:
         method, task, label = folder.parts[-3:]
         if not (folder / EVALUATION_FILE).exists():
@@ -146,6 +148,10 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
                 continue
             record = read_evaluation_strict(path)
             check_reference_record(path, record, method, task, label, side)
+            if side == "target":
+                spent = _training_compute(folder)
+                if spent is not None:
+                    trained[f"{method}/{task}/{label}"] = spent
             if side == "target" and (folder / METRICS_FILE).exists():
                 # The curve first: the folder's evaluation, written last, marks it complete.
                 curve_path = folder / METRICS_FILE
@@ -170,8 +176,7 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
                               + (f" and {len(conflicts) - 1} more" if len(conflicts) > 1 else "")
                               + "; published numbers change only with --replace")
     # The compute files are prepared before anything is written: a bad state file changes nothing.
-    state = _sweep_state(sweep_out)
-    compute = _compute_documents(state, [target for _, target, _ in plan]) if state is not None else {}
+    compute = _compute_documents(_sweep_state(sweep_out) or {}, trained, [target for _, target, _ in plan])
     data_of = {target: data for _, target, data in plan}
     try:
         for target in written:
@@ -213,27 +218,41 @@ def _sweep_state(sweep_out: Path) -> dict[str, Any] | None:
     return runs
 
 
-def _compute_documents(runs: dict[str, Any], published: Sequence[Path]) -> dict[Path, dict[str, Any]]:
+def _training_compute(folder: Path) -> TrainingCompute | None:
+    """The training compute a run folder's ``result.json`` records, or None (no training in this
+    folder, or one from before trainings recorded compute)."""
+    try:
+        result = json.loads((folder / RESULT_FILE).read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    return TrainingCompute.parse(result.get("compute")) if isinstance(result, dict) else None
+
+
+def _compute_documents(runs: dict[str, Any], trained: dict[str, TrainingCompute],
+                       published: Sequence[Path]) -> dict[Path, dict[str, Any]]:
     """Per budget folder, its ``compute.json`` updated with the published runs: per run (keyed
-    ``method/task/seeds``), the compute its attempts took as the sweep's state file holds it. A run
-    that scores another run's policy (RL on source on a second task) shows its evaluations only;
-    the training is the other run's."""
+    ``method/task/seeds``), the compute its attempts took as the sweep's state file holds it, and
+    under ``training`` what the training itself counted over all its attempts (carried in its
+    checkpoints, so resumes lose nothing). A run that scores another run's policy (RL on source on
+    a second task) shows its evaluations only; the training is the other run's."""
     by_budget: dict[Path, dict[str, Any]] = {}
     for target in published:
         budget_dir = target.parents[3]
         run_id = "/".join(target.parent.relative_to(budget_dir).parts)
         record = runs.get(run_id)
-        if not isinstance(record, dict) or record.get("status") != "done":
-            continue
-        if not record.get("attempts") and not record.get("history"):
-            # Found finished (its records restored or made by an earlier sweep whose state is gone):
-            # this sweep measured no compute for it, and a stored entry must not become zeros.
-            continue
-        history = [{key: attempt.get(key) for key in _ATTEMPT_FIELDS}
-                   for attempt in record.get("history") or [] if isinstance(attempt, dict)]
-        by_budget.setdefault(budget_dir, {})[run_id] = {
-            "attempts_started": record.get("attempts"), "wall_time_s": record.get("wall_time_s"),
-            "cpu_time_s": record.get("cpu_time_s"), "recorded_attempts": history}
+        entry: dict[str, Any] = {}
+        # Found finished (its records restored or made by an earlier sweep whose state is gone), a
+        # run has no attempts in this state: the sweep measured nothing, and zeros would be false.
+        if (isinstance(record, dict) and record.get("status") == "done"
+                and (record.get("attempts") or record.get("history"))):
+            history = [{key: attempt.get(key) for key in _ATTEMPT_FIELDS}
+                       for attempt in record.get("history") or [] if isinstance(attempt, dict)]
+            entry = {"attempts_started": record.get("attempts"), "wall_time_s": record.get("wall_time_s"),
+                     "cpu_time_s": record.get("cpu_time_s"), "recorded_attempts": history}
+        if run_id in trained:
+            entry["training"] = trained[run_id].to_dict()
+        if entry:
+            by_budget.setdefault(budget_dir, {})[run_id] = entry
     documents = {}
     for budget_dir, entries in sorted(by_budget.items()):
         path = budget_dir / COMPUTE_FILE
@@ -241,13 +260,20 @@ def _compute_documents(runs: dict[str, Any], published: Sequence[Path]) -> dict[
         if path.exists():
             try:
                 stored = json.loads(path.read_text())["runs"]
+                if not isinstance(stored, dict) or not all(isinstance(entry, dict) for entry in stored.values()):
+                    raise TypeError("its runs are not a mapping of run entries")
             except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
                 raise SubmissionError(f"{path}: unreadable ({error}); move it away to record compute anew") from None
         documents[path] = {
             "format": "offdyn-bench/reference-compute", "format_version": 1,
             "note": "Per run, from the sweep's state file: wall and CPU time summed over the attempts it recorded "
-                    "(an attempt cut short by a killed sweep has no outcome and is not counted).",
-            "runs": dict(sorted((stored | entries).items()))}
+                    "(an attempt cut short by a killed sweep has no outcome and is not counted). `training`, "
+                    "where present: the training's own count over all its attempts, each up to the checkpoint "
+                    "the next resumed from (carried in the checkpoints); `complete` is false when an attempt "
+                    "before the count began is missing.",
+            # A run's entry is updated, not replaced: a training count found later keeps the sweep's.
+            "runs": dict(sorted((stored | {run_id: stored.get(run_id, {}) | entry
+                                           for run_id, entry in entries.items()}).items()))}
     return documents
 
 

@@ -15,7 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from baselines.checkpoint import CHECKSUMS_FILE, STATE_FILE, TRAINER_FILE, checkpoints, latest_checkpoint
-from baselines.run_folder import run_folder_lock, write_json_atomic, write_lines_atomic
+from baselines.run_folder import TrainingCompute, run_folder_lock, write_json_atomic, write_lines_atomic
 from baselines.train import train
 from offdyn_bench.cli import app
 from offdyn_bench.errors import OffdynError, UnknownNameError
@@ -98,6 +98,51 @@ def test_checkpoints_from_before_checksums_still_resume(whole_run, cut_run):
     for checkpoint in checkpoints(cut_run):
         (checkpoint / CHECKSUMS_FILE).unlink()
     assert train("sac-source", PENDULUM, out=cut_run, **RUN)["returns"] == whole_run[0]["returns"]
+
+
+def _trainer(checkpoint: Path) -> dict:
+    return json.loads((checkpoint / TRAINER_FILE).read_text())
+
+
+def test_a_resumed_run_counts_the_compute_of_every_attempt(whole_run, cut_run):
+    first = _trainer(checkpoints(cut_run)[-1])["compute"]
+    assert first["attempts"] == 1 and first["complete"] is True and first["wall_time_s"] > 0
+    before_resume = _curve(cut_run)
+    resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
+    compute = resumed["compute"]
+    assert compute["attempts"] == 2 and compute["complete"] is True
+    # The second attempt adds its own time to what the step-80 checkpoint carried.
+    assert compute["wall_time_s"] > first["wall_time_s"] and compute["cpu_time_s"] > first["cpu_time_s"]
+    curve = _curve(cut_run)
+    # The lines kept from the first attempt keep its times; the later ones go on from the checkpoint.
+    assert curve[:2] == before_resume[:2]
+    for key in ("wall_time_s", "cpu_time_s"):
+        times = [line[key] for line in curve]
+        assert times == sorted(times), f"{key} went back at the resume: {times}"
+        assert times[2] > first[key]
+    assert whole_run[0]["compute"]["attempts"] == 1 and whole_run[0]["compute"]["complete"] is True
+
+
+def test_a_checkpoint_from_before_compute_was_recorded_resumes_and_says_the_times_are_partial(whole_run, cut_run):
+    for checkpoint in checkpoints(cut_run):
+        trainer = _trainer(checkpoint)
+        del trainer["compute"]
+        (checkpoint / TRAINER_FILE).write_text(json.dumps(trainer))
+        (checkpoint / CHECKSUMS_FILE).unlink()  # as checkpoints of that time may lack them too
+    resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
+    assert resumed["returns"] == whole_run[0]["returns"]
+    assert resumed["compute"]["attempts"] == 2 and resumed["compute"]["complete"] is False
+
+
+@pytest.mark.parametrize("stored", [{"wall_time_s": float("nan"), "cpu_time_s": 1.0, "attempts": 1, "complete": True},
+                                    {"wall_time_s": -1.0, "cpu_time_s": 1.0, "attempts": 1, "complete": True},
+                                    {"wall_time_s": 1.0, "cpu_time_s": 1.0, "attempts": 0, "complete": True},
+                                    {"wall_time_s": 1.0, "cpu_time_s": "1", "attempts": 1, "complete": True},
+                                    "1.0 s"])
+def test_compute_a_checkpoint_carries_that_is_not_time_counts_as_missing(stored):
+    assert TrainingCompute.parse(stored) is None
+    whole = {"wall_time_s": 2, "cpu_time_s": 3.5, "attempts": 2, "complete": False}
+    assert TrainingCompute.parse(whole) == TrainingCompute(2.0, 3.5, 2, False)
 
 
 def test_every_checkpoint_damaged_is_a_clear_error_and_changes_nothing(cut_run, capsys):

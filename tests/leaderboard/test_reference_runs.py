@@ -419,6 +419,51 @@ def test_a_run_found_finished_keeps_the_compute_recorded_when_it_ran(sweep_out, 
     assert report.compute == ()
 
 
+def _write_result_compute(run: Path, compute: object) -> None:
+    (run / "result.json").write_text(json.dumps({"algo": "sac-target", "compute": compute}))
+
+
+def test_publishing_records_the_trainings_own_compute_over_all_its_attempts(sweep_out, tmp_path):
+    runs = sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5"
+    training = {"wall_time_s": 1650.5, "cpu_time_s": 1601.25, "attempts": 3, "complete": True}
+    _write_result_compute(runs / "seed-0", training)
+    _write_result_compute(runs / "seed-1", {"wall_time_s": "long", "cpu_time_s": 1.0, "attempts": 1,
+                                            "complete": True})  # not a time: left out, not guessed
+    # The sweep saw only the last attempt: its state and the training's count sit side by side.
+    (sweep_out / "sweep.json").write_text(_state({"sac-target/hopper-gravity-0.5/seed-0": {
+        "status": "done", "attempts": 1, "wall_time_s": 700.0, "cpu_time_s": 690.0,
+        "history": [_attempt(1, 700.0, 690.0)]}}))
+    dest = tmp_path / "published"
+    report = publish_reference_runs(sweep_out, dest)
+    runs_compute = json.loads(report.compute[0].read_text())["runs"]
+    entry = runs_compute["sac-target/hopper-gravity-0.5/seed-0"]
+    assert entry["training"] == training and entry["wall_time_s"] == 700.0
+    assert "sac-target/hopper-gravity-0.5/seed-1" not in runs_compute
+    # Without a sweep state (runs trained by hand) the training's count is recorded alone, and it
+    # is added to, not swapped for, an entry recorded earlier.
+    (sweep_out / "sweep.json").unlink()
+    training_two = training | {"attempts": 4}
+    _write_result_compute(runs / "seed-0", training_two)
+    publish_reference_runs(sweep_out, dest)
+    entry = json.loads(report.compute[0].read_text())["runs"]["sac-target/hopper-gravity-0.5/seed-0"]
+    assert entry["training"] == training_two and entry["recorded_attempts"][0]["wall_time_s"] == 700.0
+    alone = publish_reference_runs(sweep_out, tmp_path / "by-hand")
+    assert json.loads(alone.compute[0].read_text())["runs"] == {"sac-target/hopper-gravity-0.5/seed-0":
+                                                                 {"training": training_two}}
+
+
+def test_a_damaged_compute_file_publishes_nothing(sweep_out, tmp_path):
+    _write_result_compute(sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5" / "seed-0",
+                          {"wall_time_s": 1.0, "cpu_time_s": 1.0, "attempts": 1, "complete": True})
+    compute_file = tmp_path / "published" / "lite" / "compute.json"
+    compute_file.parent.mkdir(parents=True)
+    compute_file.write_text(json.dumps({"runs": {"sac-target/hopper-gravity-0.5/seed-0": [1, 2]}}))
+    with pytest.raises(SubmissionError, match=r"compute.json: unreadable \(its runs are not a mapping of run "
+                                              r"entries\); move it away"):
+        publish_reference_runs(sweep_out, tmp_path / "published")
+    assert [p.name for p in (tmp_path / "published").rglob("*") if p.is_file()] == ["compute.json"]
+
+
 def test_a_broken_sweep_state_publishes_nothing(sweep_out, tmp_path):
     (sweep_out / "sweep.json").write_text('{"runs": [1, 2]}')
     with pytest.raises(SubmissionError, match=r"sweep.json: not a sweep state file \(its runs are not a mapping\); "
