@@ -109,12 +109,31 @@ def _dataset_reference(provenance: Any) -> dict[str, str] | None:
     return {"id": ident, "sha256": provenance.get("sha256")}
 
 
+def tasks_outside_core_suite(evaluations: Mapping[Path, Mapping[str, Any]]) -> dict[str, list[Path]]:
+    """The registered tasks outside the core suite that ``evaluations`` (path: record) score, each
+    with its records' paths. A name that is no registered task is not among them: it is an error
+    wherever it appears, never something to leave out."""
+    from offdyn_bench import protocol
+    from offdyn_bench.tasks import TASKS
+
+    outside: dict[str, list[Path]] = {}
+    for path, evaluation in evaluations.items():
+        task = evaluation.get("task")
+        if isinstance(task, str) and task in TASKS and task not in protocol.CORE_SUITE:
+            outside.setdefault(task, []).append(path)
+    return outside
+
+
 def assemble_submission(runs_dir: Path, *, method: str, description: str = "", code_url: str | None = None,
                         commit: str | None = None, track: str | None = None, budget: str | None = None,
-                        learning_curves: bool = True, merge_seeds: bool = False) -> Submission:
+                        learning_curves: bool = True, merge_seeds: bool = False,
+                        core_suite_only: bool = False) -> Submission:
     """The validated submission of the ``evaluation.json`` files under ``runs_dir`` (one per task;
     ``merge_seeds``: or one per training seed, as a sweep and ``leaderboard/reference-runs`` keep
-    them, each task's merged into one after checking they were evaluated alike)."""
+    them, each task's merged into one after checking they were evaluated alike).
+    ``core_suite_only``: leave out evaluations of registered tasks outside the core suite (a sweep
+    that also screened candidate tasks; :func:`tasks_outside_core_suite` names them) instead of
+    refusing them."""
     from offdyn_bench import protocol
 
     if not runs_dir.is_dir():
@@ -124,6 +143,13 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
         raise SubmissionError(f"no {EVALUATION_FILE} under {runs_dir}; run `offdyn-bench evaluate` on each "
                               "run folder first")
     evaluations = {path: read_evaluation_strict(path) for path in paths}
+    if core_suite_only:
+        outside = tasks_outside_core_suite(evaluations)
+        evaluations = {path: evaluation for path, evaluation in evaluations.items()
+                       if evaluation["task"] not in outside}
+        if not evaluations:
+            raise SubmissionError(f"no evaluation of a core-suite task under {runs_dir} (only of "
+                                  f"{', '.join(sorted(outside))})")
 
     for path, evaluation in evaluations.items():
         # `evaluate` says itself when a record is no protocol result (the source side, another
@@ -165,8 +191,10 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
     core = tuple(protocol.CORE_SUITE)
     extra = sorted(set(by_task) - set(core))
     if extra:
+        registered = tasks_outside_core_suite({by_task[task]: {"task": task} for task in extra})
+        hint = "; pass --core-suite-only to leave out the tasks evaluated beside it" if registered else ""
         raise SubmissionError(f"{by_task[extra[0]]} evaluates {extra[0]}, which is not in the core suite; "
-                              f"a submission holds exactly the core suite ({', '.join(core)})")
+                              f"a submission holds exactly the core suite ({', '.join(core)}){hint}")
     missing = [task for task in core if task not in by_task]
     if missing:
         raise SubmissionError(f"no evaluation of {', '.join(missing)} under {runs_dir} "

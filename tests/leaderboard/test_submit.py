@@ -74,6 +74,32 @@ def test_unknown_task(tmp_path: Path, write_runs) -> None:
     _fails(tmp_path / "runs", "evaluates hopper-friction-0.1, which is not in the core suite")
 
 
+def test_tasks_screened_beside_the_core_suite_are_left_out_only_when_asked(tmp_path: Path, write_runs) -> None:
+    write_runs(tmp_path / "runs")
+    whole = assemble_submission(tmp_path / "runs", method="dap").document
+    screened = tmp_path / "runs" / "dap" / "screened"
+    screened.mkdir()
+    document = json.loads((tmp_path / "runs" / "dap" / "hopper-gravity-0.5" / "evaluation.json").read_text())
+    (screened / "evaluation.json").write_text(json.dumps(document | {"task": "hopper-friction-0.1"}))
+    _fails(tmp_path / "runs", "evaluates hopper-friction-0.1, which is not in the core suite",
+           "pass --core-suite-only to leave out the tasks evaluated beside it")
+    # Left out, the submission is exactly the one without the screened task, and the command says so.
+    assert assemble_submission(tmp_path / "runs", method="dap", core_suite_only=True).document == whole
+    out = tmp_path / "dap.json"
+    result = _submit(str(tmp_path / "runs"), "--method", "dap", "--core-suite-only", "--out", str(out))
+    assert result.exit_code == 0, result.output
+    assert "left out hopper-friction-0.1 (1 evaluation(s)): not in the core suite" in result.output
+    assert read_submission_file(out).document == whole
+    # A name that is no task at all is an error even then: it is never quietly dropped.
+    (screened / "evaluation.json").write_text(json.dumps(document | {"task": "hopper-friction-0.11"}))
+    _fails(tmp_path / "runs", "evaluates hopper-friction-0.11, which is not in the core suite", core_suite_only=True)
+    shutil.rmtree(tmp_path / "runs" / "dap")
+    (tmp_path / "runs" / "dap").mkdir(parents=True)
+    (tmp_path / "runs" / "dap" / "evaluation.json").write_text(json.dumps(document | {"task": "hopper-friction-0.1"}))
+    _fails(tmp_path / "runs", "no evaluation of a core-suite task under", "(only of hopper-friction-0.1)",
+           core_suite_only=True)
+
+
 def test_duplicate_task(tmp_path: Path, write_runs) -> None:
     write_runs(tmp_path / "runs")
     copy = tmp_path / "runs" / "again"
