@@ -159,6 +159,36 @@ def read_metrics(out: Path, resume_step: int) -> tuple[list[str], list[str]]:
     return kept, notes
 
 
+def training_progress(out: Path) -> tuple[float, TrainingCompute | None] | None:
+    """How far the training in ``out`` has got, for estimates: the fraction of its steps up to its
+    last learning-curve line, and the compute its ``result.json`` records once it has finished
+    (None before, or from before trainings recorded compute). None: no training started there, or
+    files that cannot be read as one (an estimate only skips them; resuming says what is wrong)."""
+    try:
+        steps = json.loads((out / CONFIG_FILE).read_text()).get("steps")
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return None
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0:
+        return None
+    done = 0
+    try:
+        for line in (out / METRICS_FILE).read_text(errors="replace").splitlines():
+            try:
+                step = json.loads(line).get("step")
+            except (ValueError, AttributeError):
+                continue  # a line cut off by a kill
+            if isinstance(step, int) and not isinstance(step, bool):
+                done = max(done, min(step, steps))
+    except OSError:
+        pass  # no curve yet: nothing evaluated
+    try:
+        result = json.loads((out / RESULT_FILE).read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        result = None
+    compute = TrainingCompute.parse(result.get("compute")) if isinstance(result, dict) else None
+    return done / steps, compute
+
+
 def write_lines_atomic(path: Path, lines: list[str]) -> None:
     _write_text_atomic(path, "".join(line + "\n" for line in lines))
 

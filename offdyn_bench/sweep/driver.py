@@ -22,7 +22,7 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
-from baselines.run_folder import exclusive_folder_lock, write_json_atomic
+from baselines.run_folder import TrainingCompute, exclusive_folder_lock, training_progress, write_json_atomic
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, default_workers
 from offdyn_bench.sweep.execute import AttemptOutcome
@@ -146,17 +146,27 @@ class _Progress:
 
     The ETA weighs each remaining run by the mean wall time of finished runs of its kind: a run
     that trains, or one that only scores another run's policy (seconds, not the training's
-    minutes; counting it as a training would put a source-only sweep's ETA hours late). A running
-    run counts only the part of that mean it has not used yet."""
+    minutes; counting it as a training would put a source-only sweep's ETA hours late). A finished
+    training counts what it took over all its attempts (its own count, carried in its checkpoints)
+    when that is more than the sweep saw: a run resumed from a checkpoint is not a short run. A
+    remaining training with steps done (running, or resumed from a killed sweep) counts only the
+    part of the mean its steps left take; one that has evaluated nothing yet counts the part of
+    the mean it has not used since it started."""
 
     def __init__(self, echo: Echo | None, total: int, kinds: dict[str, str] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 progress_of: Callable[[str], tuple[float, TrainingCompute | None] | None] | None = None) -> None:
         self.echo, self.total, self.clock = echo, total, clock
         self.kinds = kinds or {}
         """Per run id, ``train`` or ``score``; a run not named trains."""
+        self.progress_of = progress_of or (lambda _run_id: None)
+        """Per run id, its training's fraction done and finished compute (see
+        :func:`baselines.run_folder.training_progress`); None where unknown."""
         self.walls: dict[str, list[float]] = {"train": [], "score": []}
         self.started: dict[str, float] = {}
         """Per run id in flight, when its current attempt started (``clock``)."""
+        self.fraction_done: dict[str, float] = {}
+        """Per remaining training run, the fraction of its steps done when last looked at."""
         self.last_line, self.last_time = "", 0.0
 
     def start(self, run_id: str) -> None:
@@ -166,8 +176,21 @@ class _Progress:
         return self.kinds.get(run_id, "train")
 
     def add_wall(self, run_id: str, wall: float) -> None:
-        self.walls[self.kind(run_id)].append(wall)
+        if self.kind(run_id) == "train":
+            progress = self.progress_of(run_id)
+            if progress is not None and progress[1] is not None and progress[1].complete:
+                wall = max(wall, progress[1].wall_time_s)
+        if wall > 0:  # a run found finished, its time measured by nobody, says nothing about the mean
+            self.walls[self.kind(run_id)].append(wall)
         self.started.pop(run_id, None)
+        self.fraction_done.pop(run_id, None)
+
+    def _fraction(self, run_id: str, running: bool) -> float:
+        # A waiting run's folder does not change: read once. A running one is read at every line.
+        if running or run_id not in self.fraction_done:
+            progress = self.progress_of(run_id) if self.kind(run_id) == "train" else None
+            self.fraction_done[run_id] = progress[0] if progress is not None else 0.0
+        return self.fraction_done[run_id]
 
     def line(self, records: dict[str, RunRecord], capacity: int) -> str:
         counts = {status: 0 for status in ("done", "running", "failed", "pending")}
@@ -186,7 +209,11 @@ class _Progress:
 
             def left(run_id: str) -> float:
                 expected = mean_wall(self.kind(run_id))
-                if records[run_id].status == "running" and run_id in self.started:
+                running = records[run_id].status == "running"
+                fraction = self._fraction(run_id, running)
+                if fraction > 0:
+                    return expected * (1.0 - fraction)
+                if running and run_id in self.started:
                     # Past its kind's mean it is taken to be about done, not to take the mean again.
                     return max(0.0, expected - (self.clock() - self.started[run_id]))
                 return expected
@@ -273,10 +300,12 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     ensure_dataset(dataset, progress=False, echo=lambda line: say(f"dataset: {line}"))
                 if engine is None:
                     engine = make_backend(backend, spec, workers)
+                folder_of = {run.run_id: run.folder for run in runs}
                 progress = _Progress(echo, len(runs), {
-                    run.run_id: "train" if run.shared_training is None else "score" for run in runs})
+                    run.run_id: "train" if run.shared_training is None else "score" for run in runs},
+                    progress_of=lambda run_id: training_progress(folder_of[run_id]))
                 for run in runs:
-                    if records[run.run_id].status == "done" and records[run.run_id].wall_time_s > 0:
+                    if records[run.run_id].status == "done":
                         progress.add_wall(run.run_id, records[run.run_id].wall_time_s)
                 tries_left = {run.run_id: 1 + spec.max_retries for run in pending}
                 in_flight: dict[Any, Run] = {}

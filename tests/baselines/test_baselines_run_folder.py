@@ -123,6 +123,19 @@ def test_a_resumed_run_counts_the_compute_of_every_attempt(whole_run, cut_run):
     assert whole_run[0]["compute"]["attempts"] == 1 and whole_run[0]["compute"]["complete"] is True
 
 
+def test_training_progress_reads_how_far_a_run_got_and_what_it_took(cut_run):
+    from baselines.run_folder import training_progress
+
+    assert training_progress(cut_run) == (90 / 120, None)  # evaluated up to step 90, unfinished
+    with open(cut_run / "metrics.jsonl", "a") as f:
+        f.write('{"step": 120, "target_ret')  # a line cut off by a kill is no progress
+    assert training_progress(cut_run) == (90 / 120, None)
+    resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
+    assert training_progress(cut_run) == (1.0, TrainingCompute.parse(resumed["compute"]))
+    (cut_run / "config.json").write_text("{")
+    assert training_progress(cut_run) is None and training_progress(cut_run / "absent") is None
+
+
 def test_a_checkpoint_from_before_compute_was_recorded_resumes_and_says_the_times_are_partial(whole_run, cut_run):
     for checkpoint in checkpoints(cut_run):
         trainer = _trainer(checkpoint)

@@ -286,3 +286,32 @@ def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
     for run_id in ("train-1", "score-1", "score-2", "score-3"):
         records[run_id].status = "done"
     assert progress.line(records, capacity=1).endswith("ETA 0s")
+
+
+def test_the_eta_counts_the_steps_a_training_has_left_and_the_whole_time_a_resumed_one_took():
+    from baselines.run_folder import TrainingCompute
+    from offdyn_bench.sweep.driver import RunRecord, _Progress
+    from offdyn_bench.sweep.driver import format_duration
+
+    def record(status: str) -> RunRecord:
+        return RunRecord(method="sac-target", task="t", seeds=[0], folder="f", log="l", status=status)
+
+    # done-0 was resumed: the sweep saw its last attempt (700 s); its training counted 1,600 s.
+    trainings = {"done-0": (1.0, TrainingCompute(1600.0, 1550.0, 2, True)), "running": (0.75, None),
+                 "resumed": (0.5, None), "fresh": None}
+    records = {"done-0": record("done"), "running": record("running"), "resumed": record("pending"),
+               "fresh": record("pending")}
+    progress = _Progress(None, len(records), progress_of=trainings.get)
+    progress.add_wall("done-0", 700.0)
+    assert progress.walls["train"] == [1600.0]
+    # Left: a quarter of the running one, half of the one resumed from a checkpoint, all of the fresh one.
+    assert progress.line(records, capacity=1).endswith(f"ETA {format_duration(1600.0 * (0.25 + 0.5 + 1.0))}")
+    trainings["running"] = (0.9, None)  # read again while it runs; the waiting ones are not
+    trainings["resumed"] = (0.0, None)
+    assert progress.line(records, capacity=1).endswith(f"ETA {format_duration(1600.0 * (0.1 + 0.5 + 1.0))}")
+    # A count from before checkpoints carried compute is partial: the sweep's own time stands.
+    partial = _Progress(None, 1, progress_of=lambda _: (1.0, TrainingCompute(300.0, 290.0, 2, False)))
+    partial.add_wall("done-0", 700.0)
+    found = _Progress(None, 1, progress_of=lambda _: (1.0, None))
+    found.add_wall("done-0", 0.0)  # found finished, measured by nobody
+    assert partial.walls["train"] == [700.0] and found.walls["train"] == []
