@@ -146,7 +146,8 @@ class _Progress:
 
     The ETA weighs each remaining run by the mean wall time of finished runs of its kind: a run
     that trains, or one that only scores another run's policy (seconds, not the training's
-    minutes; counting it as a training would put a source-only sweep's ETA hours late). A finished
+    minutes; counting it as a training would put a source-only sweep's ETA hours late); before any
+    training has finished, the trainings running now extrapolate from their steps so far. A finished
     training counts what it took over all its attempts (its own count, carried in its checkpoints)
     when that is more than the sweep saw: a run resumed from a checkpoint is not a short run. A
     remaining training with steps done (running, or resumed from a killed sweep) counts only the
@@ -167,10 +168,13 @@ class _Progress:
         """Per run id in flight, when its current attempt started (``clock``)."""
         self.fraction_done: dict[str, float] = {}
         """Per remaining training run, the fraction of its steps done when last looked at."""
+        self.fraction_at_start: dict[str, float] = {}
+        """Per run id in flight, the fraction of its steps done when its current attempt started."""
         self.last_line, self.last_time = "", 0.0
 
     def start(self, run_id: str) -> None:
         self.started[run_id] = self.clock()
+        self.fraction_at_start[run_id] = self._fraction(run_id, running=True)
 
     def kind(self, run_id: str) -> str:
         return self.kinds.get(run_id, "train")
@@ -184,6 +188,7 @@ class _Progress:
             self.walls[self.kind(run_id)].append(wall)
         self.started.pop(run_id, None)
         self.fraction_done.pop(run_id, None)
+        self.fraction_at_start.pop(run_id, None)
 
     def _fraction(self, run_id: str, running: bool) -> float:
         # A waiting run's folder does not change: read once. A running one is read at every line.
@@ -197,20 +202,29 @@ class _Progress:
         for record in records.values():
             counts[record.status] = counts.get(record.status, 0) + 1
         remaining = [run_id for run_id, record in records.items() if record.status in ("running", "pending")]
-        every = [wall for walls in self.walls.values() for wall in walls]
+        fractions = {run_id: self._fraction(run_id, records[run_id].status == "running") for run_id in remaining}
+        # Before any training has finished, those running now say how long one takes: the time
+        # their attempt has run over the share of the steps it has done.
+        extrapolated = [(self.clock() - self.started[run_id]) / gained for run_id in remaining
+                        if records[run_id].status == "running" and run_id in self.started
+                        and self.kind(run_id) == "train"
+                        and (gained := fractions[run_id] - self.fraction_at_start.get(run_id, 0.0)) > 0]
+        walls_of = dict(self.walls)
+        walls_of["train"] = self.walls["train"] or extrapolated
+        every = [wall for walls in walls_of.values() for wall in walls]
         eta = None
         if not remaining:
             eta = 0.0
         elif every:
             def mean_wall(kind: str) -> float:
                 # A kind with no finished run yet borrows the mean of all finished runs.
-                walls = self.walls[kind] or every
+                walls = walls_of[kind] or every
                 return sum(walls) / len(walls)
 
             def left(run_id: str) -> float:
                 expected = mean_wall(self.kind(run_id))
                 running = records[run_id].status == "running"
-                fraction = self._fraction(run_id, running)
+                fraction = fractions[run_id]
                 if fraction > 0:
                     return expected * (1.0 - fraction)
                 if running and run_id in self.started:

@@ -315,3 +315,21 @@ def test_the_eta_counts_the_steps_a_training_has_left_and_the_whole_time_a_resum
     found = _Progress(None, 1, progress_of=lambda _: (1.0, None))
     found.add_wall("done-0", 0.0)  # found finished, measured by nobody
     assert partial.walls["train"] == [700.0] and found.walls["train"] == []
+
+
+def test_before_any_training_finishes_the_eta_extrapolates_from_the_running_ones():
+    from offdyn_bench.sweep.driver import RunRecord, _Progress
+
+    def record(status: str) -> RunRecord:
+        return RunRecord(method="sac-target", task="t", seeds=[0], folder="f", log="l", status=status)
+
+    now = [0.0]
+    fraction = {"running": 0.2, "fresh": 0.0}
+    records = {"running": record("running"), "fresh": record("pending")}
+    progress = _Progress(None, 2, clock=lambda: now[0], progress_of=lambda run_id: (fraction[run_id], None))
+    progress.start("running")  # resumed at 20% of its steps
+    assert progress.line(records, capacity=1).endswith("ETA ?")  # no step done yet in this attempt
+    now[0], fraction["running"] = 600.0, 0.5
+    # 30% of the steps in 600 s: a whole training takes 2000 s; half of one is left, and all of the other.
+    assert progress.line(records, capacity=1).endswith("ETA 50m00s")
+    assert progress.line(records, capacity=2).endswith("ETA 25m00s")
