@@ -159,34 +159,55 @@ def read_metrics(out: Path, resume_step: int) -> tuple[list[str], list[str]]:
     return kept, notes
 
 
-def training_progress(out: Path) -> tuple[float, TrainingCompute | None] | None:
-    """How far the training in ``out`` has got, for estimates: the fraction of its steps up to its
-    last learning-curve line, and the compute its ``result.json`` records once it has finished
-    (None before, or from before trainings recorded compute). None: no training started there, or
-    files that cannot be read as one (an estimate only skips them; resuming says what is wrong)."""
+@dataclasses.dataclass(frozen=True)
+class TrainingProgress:
+    """How far a training has got, for estimates (:func:`training_progress`)."""
+
+    fraction: float
+    """The share of its steps up to its last learning-curve line."""
+    seconds_per_run: float | None
+    """A whole run's wall time at the pace between its last two curve lines (None before there are
+    two, or where their times do not increase). The latest pace, not the mean: the first steps,
+    random actions with no updates, go many times faster than the rest."""
+    compute: TrainingCompute | None
+    """What ``result.json`` records once it has finished (None before, or from before trainings
+    recorded compute)."""
+
+
+def training_progress(out: Path) -> TrainingProgress | None:
+    """How far the training in ``out`` has got. None: no training started there, or files that
+    cannot be read as one (an estimate only skips them; resuming says what is wrong)."""
     try:
         steps = json.loads((out / CONFIG_FILE).read_text()).get("steps")
     except (OSError, UnicodeDecodeError, ValueError, AttributeError):
         return None
     if not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0:
         return None
-    done = 0
+    points: list[tuple[int, Any]] = []
     try:
         for line in (out / METRICS_FILE).read_text(errors="replace").splitlines():
             try:
-                step = json.loads(line).get("step")
+                entry = json.loads(line)
+                step, wall = entry.get("step"), entry.get("wall_time_s")
             except (ValueError, AttributeError):
                 continue  # a line cut off by a kill
-            if isinstance(step, int) and not isinstance(step, bool):
-                done = max(done, min(step, steps))
+            if isinstance(step, int) and not isinstance(step, bool) and 0 < step <= steps:
+                points.append((step, wall))
     except OSError:
         pass  # no curve yet: nothing evaluated
+    points.sort(key=lambda point: point[0])
+    per_run = None
+    if len(points) >= 2:
+        (step_a, wall_a), (step_b, wall_b) = points[-2:]
+        if (all(isinstance(w, int | float) and not isinstance(w, bool) and math.isfinite(w) for w in (wall_a, wall_b))
+                and step_b > step_a and wall_b > wall_a):
+            per_run = (wall_b - wall_a) / (step_b - step_a) * steps
     try:
         result = json.loads((out / RESULT_FILE).read_text())
     except (OSError, UnicodeDecodeError, ValueError):
         result = None
     compute = TrainingCompute.parse(result.get("compute")) if isinstance(result, dict) else None
-    return done / steps, compute
+    return TrainingProgress(points[-1][0] / steps if points else 0.0, per_run, compute)
 
 
 def write_lines_atomic(path: Path, lines: list[str]) -> None:

@@ -22,7 +22,7 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
-from baselines.run_folder import TrainingCompute, exclusive_folder_lock, training_progress, write_json_atomic
+from baselines.run_folder import TrainingProgress, exclusive_folder_lock, training_progress, write_json_atomic
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, default_workers
 from offdyn_bench.sweep.execute import AttemptOutcome
@@ -146,35 +146,32 @@ class _Progress:
 
     The ETA weighs each remaining run by the mean wall time of finished runs of its kind: a run
     that trains, or one that only scores another run's policy (seconds, not the training's
-    minutes; counting it as a training would put a source-only sweep's ETA hours late); before any
-    training has finished, the trainings running now extrapolate from their steps so far. A finished
+    minutes; counting it as a training would put a source-only sweep's ETA hours late). A finished
     training counts what it took over all its attempts (its own count, carried in its checkpoints)
-    when that is more than the sweep saw: a run resumed from a checkpoint is not a short run. A
-    remaining training with steps done (running, or resumed from a killed sweep) counts only the
-    part of the mean its steps left take; one that has evaluated nothing yet counts the part of
-    the mean it has not used since it started."""
+    when that is more than the sweep saw: a run resumed from a checkpoint is not a short run.
+    A running training counts its remaining steps at its own latest pace (from its learning
+    curve), and before any training has finished that pace stands in for the mean. Another
+    remaining training with steps done (resumed from a killed sweep) counts the part of the mean
+    its remaining steps take; one that has evaluated nothing yet, the part of the mean it has not
+    used since it started."""
 
     def __init__(self, echo: Echo | None, total: int, kinds: dict[str, str] | None = None,
                  clock: Callable[[], float] = time.monotonic,
-                 progress_of: Callable[[str], tuple[float, TrainingCompute | None] | None] | None = None) -> None:
+                 progress_of: Callable[[str], TrainingProgress | None] | None = None) -> None:
         self.echo, self.total, self.clock = echo, total, clock
         self.kinds = kinds or {}
         """Per run id, ``train`` or ``score``; a run not named trains."""
         self.progress_of = progress_of or (lambda _run_id: None)
-        """Per run id, its training's fraction done and finished compute (see
-        :func:`baselines.run_folder.training_progress`); None where unknown."""
+        """Per run id, how far its training has got (:func:`baselines.run_folder.training_progress`)."""
         self.walls: dict[str, list[float]] = {"train": [], "score": []}
         self.started: dict[str, float] = {}
         """Per run id in flight, when its current attempt started (``clock``)."""
-        self.fraction_done: dict[str, float] = {}
-        """Per remaining training run, the fraction of its steps done when last looked at."""
-        self.fraction_at_start: dict[str, float] = {}
-        """Per run id in flight, the fraction of its steps done when its current attempt started."""
+        self.looked: dict[str, TrainingProgress | None] = {}
+        """Per remaining training run, its progress when last looked at."""
         self.last_line, self.last_time = "", 0.0
 
     def start(self, run_id: str) -> None:
         self.started[run_id] = self.clock()
-        self.fraction_at_start[run_id] = self._fraction(run_id, running=True)
 
     def kind(self, run_id: str) -> str:
         return self.kinds.get(run_id, "train")
@@ -182,35 +179,31 @@ class _Progress:
     def add_wall(self, run_id: str, wall: float) -> None:
         if self.kind(run_id) == "train":
             progress = self.progress_of(run_id)
-            if progress is not None and progress[1] is not None and progress[1].complete:
-                wall = max(wall, progress[1].wall_time_s)
+            if progress is not None and progress.compute is not None and progress.compute.complete:
+                wall = max(wall, progress.compute.wall_time_s)
         if wall > 0:  # a run found finished, its time measured by nobody, says nothing about the mean
             self.walls[self.kind(run_id)].append(wall)
         self.started.pop(run_id, None)
-        self.fraction_done.pop(run_id, None)
-        self.fraction_at_start.pop(run_id, None)
+        self.looked.pop(run_id, None)
 
-    def _fraction(self, run_id: str, running: bool) -> float:
+    def _look(self, run_id: str, running: bool) -> TrainingProgress | None:
+        if self.kind(run_id) != "train":
+            return None
         # A waiting run's folder does not change: read once. A running one is read at every line.
-        if running or run_id not in self.fraction_done:
-            progress = self.progress_of(run_id) if self.kind(run_id) == "train" else None
-            self.fraction_done[run_id] = progress[0] if progress is not None else 0.0
-        return self.fraction_done[run_id]
+        if running or run_id not in self.looked:
+            self.looked[run_id] = self.progress_of(run_id)
+        return self.looked[run_id]
 
     def line(self, records: dict[str, RunRecord], capacity: int) -> str:
         counts = {status: 0 for status in ("done", "running", "failed", "pending")}
         for record in records.values():
             counts[record.status] = counts.get(record.status, 0) + 1
         remaining = [run_id for run_id, record in records.items() if record.status in ("running", "pending")]
-        fractions = {run_id: self._fraction(run_id, records[run_id].status == "running") for run_id in remaining}
-        # Before any training has finished, those running now say how long one takes: the time
-        # their attempt has run over the share of the steps it has done.
-        extrapolated = [(self.clock() - self.started[run_id]) / gained for run_id in remaining
-                        if records[run_id].status == "running" and run_id in self.started
-                        and self.kind(run_id) == "train"
-                        and (gained := fractions[run_id] - self.fraction_at_start.get(run_id, 0.0)) > 0]
+        looks = {run_id: self._look(run_id, records[run_id].status == "running") for run_id in remaining}
+        paces = {run_id: look.seconds_per_run for run_id, look in looks.items()
+                 if records[run_id].status == "running" and look is not None and look.seconds_per_run is not None}
         walls_of = dict(self.walls)
-        walls_of["train"] = self.walls["train"] or extrapolated
+        walls_of["train"] = self.walls["train"] or list(paces.values())
         every = [wall for walls in walls_of.values() for wall in walls]
         eta = None
         if not remaining:
@@ -222,12 +215,14 @@ class _Progress:
                 return sum(walls) / len(walls)
 
             def left(run_id: str) -> float:
+                look = looks[run_id]
+                fraction = look.fraction if look is not None else 0.0
+                if run_id in paces:
+                    return paces[run_id] * (1.0 - fraction)
                 expected = mean_wall(self.kind(run_id))
-                running = records[run_id].status == "running"
-                fraction = fractions[run_id]
                 if fraction > 0:
                     return expected * (1.0 - fraction)
-                if running and run_id in self.started:
+                if records[run_id].status == "running" and run_id in self.started:
                     # Past its kind's mean it is taken to be about done, not to take the mean again.
                     return max(0.0, expected - (self.clock() - self.started[run_id]))
                 return expected

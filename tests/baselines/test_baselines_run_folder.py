@@ -123,15 +123,25 @@ def test_a_resumed_run_counts_the_compute_of_every_attempt(whole_run, cut_run):
     assert whole_run[0]["compute"]["attempts"] == 1 and whole_run[0]["compute"]["complete"] is True
 
 
-def test_training_progress_reads_how_far_a_run_got_and_what_it_took(cut_run):
+def test_training_progress_reads_how_far_a_run_got_its_pace_and_what_it_took(cut_run):
     from baselines.run_folder import training_progress
 
-    assert training_progress(cut_run) == (90 / 120, None)  # evaluated up to step 90, unfinished
+    curve = _curve(cut_run)
+    cut = training_progress(cut_run)
+    assert cut.fraction == 90 / 120 and cut.compute is None  # evaluated up to step 90, unfinished
+    # The pace between the last two curve lines, over the whole run's 120 steps.
+    assert cut.seconds_per_run == pytest.approx((curve[2]["wall_time_s"] - curve[1]["wall_time_s"]) / 30 * 120)
     with open(cut_run / "metrics.jsonl", "a") as f:
         f.write('{"step": 120, "target_ret')  # a line cut off by a kill is no progress
-    assert training_progress(cut_run) == (90 / 120, None)
+    assert training_progress(cut_run) == cut
     resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
-    assert training_progress(cut_run) == (1.0, TrainingCompute.parse(resumed["compute"]))
+    done = training_progress(cut_run)
+    assert done.fraction == 1.0 and done.compute == TrainingCompute.parse(resumed["compute"])
+    # Times that do not increase (a curve from before they were carried across resumes) give no pace.
+    lines = _curve(cut_run)
+    lines[-1]["wall_time_s"] = lines[-2]["wall_time_s"] - 1.0
+    write_lines_atomic(cut_run / "metrics.jsonl", [json.dumps(line) for line in lines])
+    assert training_progress(cut_run).seconds_per_run is None
     (cut_run / "config.json").write_text("{")
     assert training_progress(cut_run) is None and training_progress(cut_run / "absent") is None
 

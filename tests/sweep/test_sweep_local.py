@@ -289,47 +289,50 @@ def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
 
 
 def test_the_eta_counts_the_steps_a_training_has_left_and_the_whole_time_a_resumed_one_took():
-    from baselines.run_folder import TrainingCompute
-    from offdyn_bench.sweep.driver import RunRecord, _Progress
-    from offdyn_bench.sweep.driver import format_duration
+    from baselines.run_folder import TrainingCompute, TrainingProgress
+    from offdyn_bench.sweep.driver import RunRecord, _Progress, format_duration
 
     def record(status: str) -> RunRecord:
         return RunRecord(method="sac-target", task="t", seeds=[0], folder="f", log="l", status=status)
 
     # done-0 was resumed: the sweep saw its last attempt (700 s); its training counted 1,600 s.
-    trainings = {"done-0": (1.0, TrainingCompute(1600.0, 1550.0, 2, True)), "running": (0.75, None),
-                 "resumed": (0.5, None), "fresh": None}
+    trainings = {"done-0": TrainingProgress(1.0, 1500.0, TrainingCompute(1600.0, 1550.0, 2, True)),
+                 "running": TrainingProgress(0.75, None, None), "resumed": TrainingProgress(0.5, 900.0, None),
+                 "fresh": None}
     records = {"done-0": record("done"), "running": record("running"), "resumed": record("pending"),
                "fresh": record("pending")}
     progress = _Progress(None, len(records), progress_of=trainings.get)
     progress.add_wall("done-0", 700.0)
     assert progress.walls["train"] == [1600.0]
-    # Left: a quarter of the running one, half of the one resumed from a checkpoint, all of the fresh one.
+    # Left: a quarter of the running one, half of the one resumed from a checkpoint (its old pace
+    # is not this machine's now: the mean counts), all of the fresh one.
     assert progress.line(records, capacity=1).endswith(f"ETA {format_duration(1600.0 * (0.25 + 0.5 + 1.0))}")
-    trainings["running"] = (0.9, None)  # read again while it runs; the waiting ones are not
-    trainings["resumed"] = (0.0, None)
-    assert progress.line(records, capacity=1).endswith(f"ETA {format_duration(1600.0 * (0.1 + 0.5 + 1.0))}")
+    # Read again while it runs (the waiting ones are not); with a pace, its own pace counts.
+    trainings["running"] = TrainingProgress(0.9, 2000.0, None)
+    trainings["resumed"] = TrainingProgress(0.0, None, None)
+    assert progress.line(records, capacity=1).endswith(f"ETA {format_duration(200.0 + 1600.0 * (0.5 + 1.0))}")
     # A count from before checkpoints carried compute is partial: the sweep's own time stands.
-    partial = _Progress(None, 1, progress_of=lambda _: (1.0, TrainingCompute(300.0, 290.0, 2, False)))
+    partial = _Progress(None, 1, progress_of=lambda _: TrainingProgress(1.0, None, TrainingCompute(300.0, 290.0, 2,
+                                                                                                    False)))
     partial.add_wall("done-0", 700.0)
-    found = _Progress(None, 1, progress_of=lambda _: (1.0, None))
+    found = _Progress(None, 1, progress_of=lambda _: TrainingProgress(1.0, None, None))
     found.add_wall("done-0", 0.0)  # found finished, measured by nobody
     assert partial.walls["train"] == [700.0] and found.walls["train"] == []
 
 
-def test_before_any_training_finishes_the_eta_extrapolates_from_the_running_ones():
+def test_before_any_training_finishes_the_eta_takes_the_running_ones_pace():
+    from baselines.run_folder import TrainingProgress
     from offdyn_bench.sweep.driver import RunRecord, _Progress
 
     def record(status: str) -> RunRecord:
         return RunRecord(method="sac-target", task="t", seeds=[0], folder="f", log="l", status=status)
 
-    now = [0.0]
-    fraction = {"running": 0.2, "fresh": 0.0}
+    looks = {"running": TrainingProgress(0.05, None, None), "fresh": None}
     records = {"running": record("running"), "fresh": record("pending")}
-    progress = _Progress(None, 2, clock=lambda: now[0], progress_of=lambda run_id: (fraction[run_id], None))
-    progress.start("running")  # resumed at 20% of its steps
-    assert progress.line(records, capacity=1).endswith("ETA ?")  # no step done yet in this attempt
-    now[0], fraction["running"] = 600.0, 0.5
-    # 30% of the steps in 600 s: a whole training takes 2000 s; half of one is left, and all of the other.
+    progress = _Progress(None, 2, progress_of=looks.get)
+    progress.start("running")
+    assert progress.line(records, capacity=1).endswith("ETA ?")  # one curve line: no pace yet
+    looks["running"] = TrainingProgress(0.5, 2000.0, None)  # at its latest pace a run takes 2000 s
+    # Half of one is left, and all of the other.
     assert progress.line(records, capacity=1).endswith("ETA 50m00s")
     assert progress.line(records, capacity=2).endswith("ETA 25m00s")
