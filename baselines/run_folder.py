@@ -12,17 +12,18 @@ import dataclasses
 import errno
 import fcntl
 import json
-import math
 import os
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 from typing import Any
 
+from baselines.limits import FINITE, NON_NEGATIVE, integer
 from offdyn_bench.errors import OffdynError
 
 CONFIG_FILE, METRICS_FILE, RESULT_FILE = "config.json", "metrics.jsonl", "result.json"
 LOCK_FILE = ".lock"
+_POSITIVE_INTEGER = integer(1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,10 +51,7 @@ class TrainingCompute:
             return None
         times = [stored.get("wall_time_s"), stored.get("cpu_time_s")]
         attempts, complete = stored.get("attempts"), stored.get("complete")
-        if not all(isinstance(t, int | float) and not isinstance(t, bool) and math.isfinite(t) and t >= 0
-                   for t in times):
-            return None
-        if not (isinstance(attempts, int) and not isinstance(attempts, bool) and attempts > 0
+        if not (all(NON_NEGATIVE.accepts(t) for t in times) and _POSITIVE_INTEGER.accepts(attempts)
                 and isinstance(complete, bool)):
             return None
         return cls(float(times[0]), float(times[1]), attempts, complete)
@@ -181,7 +179,7 @@ def training_progress(out: Path) -> TrainingProgress | None:
         steps = json.loads((out / CONFIG_FILE).read_text()).get("steps")
     except (OSError, UnicodeDecodeError, ValueError, AttributeError):
         return None
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps <= 0:
+    if not _POSITIVE_INTEGER.accepts(steps):
         return None
     points: list[tuple[int, Any]] = []
     try:
@@ -191,7 +189,7 @@ def training_progress(out: Path) -> TrainingProgress | None:
                 step, wall = entry.get("step"), entry.get("wall_time_s")
             except (ValueError, AttributeError):
                 continue  # a line cut off by a kill
-            if isinstance(step, int) and not isinstance(step, bool) and 0 < step <= steps:
+            if _POSITIVE_INTEGER.accepts(step) and step <= steps:
                 points.append((step, wall))
     except OSError:
         pass  # no curve yet: nothing evaluated
@@ -199,15 +197,19 @@ def training_progress(out: Path) -> TrainingProgress | None:
     per_run = None
     if len(points) >= 2:
         (step_a, wall_a), (step_b, wall_b) = points[-2:]
-        if (all(isinstance(w, int | float) and not isinstance(w, bool) and math.isfinite(w) for w in (wall_a, wall_b))
-                and step_b > step_a and wall_b > wall_a):
+        if FINITE.accepts(wall_a) and FINITE.accepts(wall_b) and step_b > step_a and wall_b > wall_a:
             per_run = (wall_b - wall_a) / (step_b - step_a) * steps
+    return TrainingProgress(points[-1][0] / steps if points else 0.0, per_run, read_training_compute(out))
+
+
+def read_training_compute(out: Path) -> TrainingCompute | None:
+    """The compute the ``result.json`` in ``out`` records, or None (no finished training there, or
+    one from before trainings recorded compute)."""
     try:
         result = json.loads((out / RESULT_FILE).read_text())
     except (OSError, UnicodeDecodeError, ValueError):
-        result = None
-    compute = TrainingCompute.parse(result.get("compute")) if isinstance(result, dict) else None
-    return TrainingProgress(points[-1][0] / steps if points else 0.0, per_run, compute)
+        return None
+    return TrainingCompute.parse(result.get("compute")) if isinstance(result, dict) else None
 
 
 def write_lines_atomic(path: Path, lines: list[str]) -> None:

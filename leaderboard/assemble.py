@@ -8,7 +8,7 @@ and returns the submission document, validated.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -109,7 +109,7 @@ def _dataset_reference(provenance: Any) -> dict[str, str] | None:
     return {"id": ident, "sha256": provenance.get("sha256")}
 
 
-def tasks_outside_core_suite(evaluations: Mapping[Path, Mapping[str, Any]]) -> dict[str, list[Path]]:
+def _tasks_outside_core_suite(evaluations: Mapping[Path, Mapping[str, Any]]) -> dict[str, list[Path]]:
     """The registered tasks outside the core suite that ``evaluations`` (path: record) score, each
     with its records' paths. A name that is no registered task is not among them: it is an error
     wherever it appears, never something to leave out."""
@@ -127,13 +127,12 @@ def tasks_outside_core_suite(evaluations: Mapping[Path, Mapping[str, Any]]) -> d
 def assemble_submission(runs_dir: Path, *, method: str, description: str = "", code_url: str | None = None,
                         commit: str | None = None, track: str | None = None, budget: str | None = None,
                         learning_curves: bool = True, merge_seeds: bool = False,
-                        core_suite_only: bool = False) -> Submission:
+                        core_suite_only: bool = False, echo: Callable[[str], None] | None = None) -> Submission:
     """The validated submission of the ``evaluation.json`` files under ``runs_dir`` (one per task;
     ``merge_seeds``: or one per training seed, as a sweep and ``leaderboard/reference-runs`` keep
     them, each task's merged into one after checking they were evaluated alike).
     ``core_suite_only``: leave out evaluations of registered tasks outside the core suite (a sweep
-    that also screened candidate tasks; :func:`tasks_outside_core_suite` names them) instead of
-    refusing them."""
+    that also screened candidate tasks) instead of refusing them, each named to ``echo``."""
     from offdyn_bench import protocol
 
     if not runs_dir.is_dir():
@@ -144,7 +143,10 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
                               "run folder first")
     evaluations = {path: read_evaluation_strict(path) for path in paths}
     if core_suite_only:
-        outside = tasks_outside_core_suite(evaluations)
+        outside = _tasks_outside_core_suite(evaluations)
+        for task, task_paths in sorted(outside.items()):
+            if echo is not None:
+                echo(f"left out {task} ({len(task_paths)} evaluation(s)): not in the core suite")
         evaluations = {path: evaluation for path, evaluation in evaluations.items()
                        if evaluation["task"] not in outside}
         if not evaluations:
@@ -191,7 +193,9 @@ def assemble_submission(runs_dir: Path, *, method: str, description: str = "", c
     core = tuple(protocol.CORE_SUITE)
     extra = sorted(set(by_task) - set(core))
     if extra:
-        registered = tasks_outside_core_suite({by_task[task]: {"task": task} for task in extra})
+        from offdyn_bench.tasks import TASKS
+
+        registered = any(task in TASKS for task in extra)
         hint = "; pass --core-suite-only to leave out the tasks evaluated beside it" if registered else ""
         raise SubmissionError(f"{by_task[extra[0]]} evaluates {extra[0]}, which is not in the core suite; "
                               f"a submission holds exactly the core suite ({', '.join(core)}){hint}")

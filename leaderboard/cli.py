@@ -53,8 +53,7 @@ def submit_command(
 ) -> None:
     """Assemble a submission from the evaluation.json files under RUNS_DIR and validate it."""
     with exit_on_error():
-        from leaderboard.assemble import (EVALUATION_FILE, assemble_submission, read_evaluation_strict,
-                                          tasks_outside_core_suite)
+        from leaderboard.assemble import assemble_submission
         from leaderboard.store import write_file_atomic
         from leaderboard.submission import SubmissionError, canonical_json
 
@@ -63,12 +62,8 @@ def submit_command(
         submission = assemble_submission(runs_dir, method=method, description=description, code_url=code_url,
                                          commit=commit, track=track, budget=budget,
                                          learning_curves=learning_curves, merge_seeds=merge_seeds,
-                                         core_suite_only=core_suite_only)
+                                         core_suite_only=core_suite_only, echo=typer.echo)
         write_file_atomic(out, canonical_json(submission.document))
-        if core_suite_only:
-            records = {path: read_evaluation_strict(path) for path in sorted(runs_dir.rglob(EVALUATION_FILE))}
-            for task, paths in sorted(tasks_outside_core_suite(records).items()):
-                typer.echo(f"left out {task} ({len(paths)} evaluation(s)): not in the core suite")
         seeds = len(next(iter(submission.tasks.values())).seeds)
         typer.echo(f"wrote {out}: {submission.method} on {submission.track}/{submission.budget}, "
                    f"{len(submission.tasks)} tasks x {seeds} seeds (valid under protocol {submission.protocol_version})")

@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from baselines.run_folder import RESULT_FILE, TrainingCompute
+from baselines.limits import FINITE
+from baselines.run_folder import TrainingCompute, read_training_compute
 from leaderboard.assemble import METRICS_FILE, read_evaluation_strict, read_learning_curve
 from leaderboard.store import write_file_atomic
 from leaderboard.submission import SubmissionError
@@ -49,10 +49,6 @@ class PublishReport:
     """Run folders of the sweep without a target record yet (training or never started)."""
     compute: tuple[Path, ...] = ()
     """The ``compute.json`` files updated with the published runs' compute (from the sweep's state)."""
-
-
-def _is_finite_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def check_reference_record(path: Path, record: dict[str, Any], method: str, task: str, label: str,
@@ -90,7 +86,7 @@ def check_reference_record(path: Path, record: dict[str, Any], method: str, task
         if not isinstance(returns, list) or len(returns) < EVAL_EPISODES:
             raise fail(f"seed {entry['seed']}: {len(returns) if isinstance(returns, list) else 'no'} episodes; "
                        f"the protocol scores at least {EVAL_EPISODES}")
-        if not all(_is_finite_number(x) for x in returns):
+        if not all(FINITE.accepts(x) for x in returns):
             raise fail(f"seed {entry['seed']}: a return that is not a finite number")
 
 
@@ -113,7 +109,7 @@ def check_reference_curve(path: Path, record: dict[str, Any]) -> list[dict[str, 
                               f"policy of step {record.get('steps')}; publish the curve of the training it scores")
     for point in curve:
         returns = point["target_return"]
-        if not all(_is_finite_number(x) for x in returns):
+        if not all(FINITE.accepts(x) for x in returns):
             raise SubmissionError(f"{path}: step {point['step']}: a target return that is not a finite number")
     return curve
 
@@ -149,7 +145,7 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
             record = read_evaluation_strict(path)
             check_reference_record(path, record, method, task, label, side)
             if side == "target":
-                spent = _training_compute(folder)
+                spent = read_training_compute(folder)
                 if spent is not None:
                     trained[f"{method}/{task}/{label}"] = spent
             if side == "target" and (folder / METRICS_FILE).exists():
@@ -216,16 +212,6 @@ def _sweep_state(sweep_out: Path) -> dict[str, Any] | None:
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
         raise SubmissionError(f"{state_path}: not a sweep state file ({error!s}); nothing was published") from None
     return runs
-
-
-def _training_compute(folder: Path) -> TrainingCompute | None:
-    """The training compute a run folder's ``result.json`` records, or None (no training in this
-    folder, or one from before trainings recorded compute)."""
-    try:
-        result = json.loads((folder / RESULT_FILE).read_text())
-    except (OSError, UnicodeDecodeError, ValueError):
-        return None
-    return TrainingCompute.parse(result.get("compute")) if isinstance(result, dict) else None
 
 
 def _compute_documents(runs: dict[str, Any], trained: dict[str, TrainingCompute],
