@@ -55,7 +55,8 @@ def _normalization_notes(board: Board) -> list[str]:
 _PROGRESS_HEADERS = ("task", "RL on source: source return", "RL on source: target return", "kept",
                      "RL on target (oracle runs)", "RL on source, normalized", "P(oracle > RL on source)")
 _PROGRESS_NOTE = ("Not submissions: the published runs of the two reference points (`leaderboard/reference-runs`, "
-                  "RL on source evaluated on both sides of each task) while they do not yet cover the core suite. "
+                  "RL on source evaluated on both sides of each task), as they come in: each core task's source-target "
+                  "gap, and how far the oracle is from RL on source there. "
                   "Returns are means over training seeds, their number in brackets; kept = target / source return; "
                   "the normalized score and P(oracle > RL on source) use the task's oracle reference, '-' where "
                   "it does not exist yet.")
@@ -85,7 +86,7 @@ def _progress_cells(row: ReferenceProgress) -> list[tuple[str, str | float | Non
 def _progress_markdown(progress: Mapping[str, Sequence[ReferenceProgress]]) -> list[str]:
     lines = []
     for budget, rows in sorted(progress.items()):
-        lines += ["", f"## Reference runs so far (`{budget}`)", "", _PROGRESS_NOTE, "",
+        lines += ["", f"## Reference runs and the source-target gap (`{budget}`)", "", _PROGRESS_NOTE, "",
                   "| " + " | ".join(_PROGRESS_HEADERS) + " |", "|---|" + "---:|" * (len(_PROGRESS_HEADERS) - 1)]
         for row in rows:
             lines.append("| " + " | ".join(_markdown_cell(text) for text, _ in _progress_cells(row)) + " |")
@@ -98,7 +99,7 @@ def _progress_html(progress: Mapping[str, Sequence[ReferenceProgress]]) -> str:
         body = "".join("<tr>" + "".join(_cell(text, sort, is_text=index == 0)
                                         for index, (text, sort) in enumerate(_progress_cells(row))) + "</tr>"
                        for row in rows)
-        parts.append(f"<h2>Reference runs so far ({html.escape(budget)})</h2>"
+        parts.append(f"<h2>Reference runs and the source-target gap ({html.escape(budget)})</h2>"
                      f'<p class="note">{html.escape(_PROGRESS_NOTE)}</p>'
                      f'<table class="sortable" id="reference-runs-{html.escape(budget)}"><thead><tr>'
                      f"{_header_row(_PROGRESS_HEADERS, text_columns=1)}</tr></thead><tbody>{body}</tbody></table>")

@@ -312,7 +312,7 @@ def test_the_leaderboard_shows_the_published_reference_runs_row_by_row(sweep_out
     second = build_site(store, tmp_path / "two", reference_runs=published)
     assert [p.read_bytes() for p in first] == [p.read_bytes() for p in second]
     markdown = first[0].read_text()
-    section = markdown[markdown.index("## Reference runs so far (`lite`)"):]
+    section = markdown[markdown.index("## Reference runs and the source-target gap (`lite`)"):]
     rows = {line.split(" | ")[0].strip("| "): line for line in section.splitlines() if line.startswith("| ")}
     assert set(CORE_SUITE) <= set(rows)
     records = [json.loads(p.read_text()) for p in sorted(published.glob("lite/sac-source/*/*/evaluation*.json"))]
@@ -325,10 +325,10 @@ def test_the_leaderboard_shows_the_published_reference_runs_row_by_row(sweep_out
         f"({len(oracle_means)}) | {gap.normalized_target:.1f} | {gap.oracle_better_probability:.2f} |")
     assert rows["ant-friction-5.0"] == "| ant-friction-5.0 | - | - | - | - | - | - |"
     page = first[1].read_text()
-    assert '<table class="sortable" id="reference-runs-lite">' in page and "Reference runs so far (lite)" in page
+    assert '<table class="sortable" id="reference-runs-lite">' in page and "Reference runs and the source-target gap (lite)" in page
     # The page without them: no such section.
     bare = build_site(store, tmp_path / "bare")
-    assert "Reference runs so far" not in bare[0].read_text() + bare[1].read_text()
+    assert "Reference runs and the source-target gap" not in bare[0].read_text() + bare[1].read_text()
 
 
 def test_leaderboard_build_shows_the_repositorys_reference_runs_unless_told_not_to(tmp_path):
@@ -340,11 +340,11 @@ def test_leaderboard_build_shows_the_repositorys_reference_runs_unless_told_not_
     store.mkdir()
     shown = CliRunner().invoke(app, ["leaderboard", "build", "--out", str(tmp_path / "a"), "--store", str(store)])
     assert shown.exit_code == 0, shown.output
-    assert "## Reference runs so far (`lite`)" in (tmp_path / "a" / "leaderboard.md").read_text()
+    assert "## Reference runs and the source-target gap (`lite`)" in (tmp_path / "a" / "leaderboard.md").read_text()
     hidden = CliRunner().invoke(app, ["leaderboard", "build", "--out", str(tmp_path / "b"), "--store", str(store),
                                       "--no-reference-runs"])
     assert hidden.exit_code == 0, hidden.output
-    assert "Reference runs so far" not in (tmp_path / "b" / "leaderboard.md").read_text()
+    assert "Reference runs and the source-target gap" not in (tmp_path / "b" / "leaderboard.md").read_text()
 
 
 def test_the_leaderboard_refuses_published_runs_it_cannot_trust(sweep_out, tmp_path):
