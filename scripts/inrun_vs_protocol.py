@@ -61,6 +61,11 @@ def main() -> None:
         raise SystemExit(f"error: {args.run} holds {len(loaded.agents)} training seeds; pass a run of one seed "
                          "(a sweep's run folder)")
     config = json.loads((args.run / "config.json").read_text())
+    metrics = args.run / "metrics.jsonl"
+    lines = ([json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+             if metrics.is_file() else [])
+    if not lines:
+        raise SystemExit(f"error: {args.run} has no in-run evaluation (metrics.jsonl) to compare with")
     seed, agent = loaded.agents[0]
     env = flat_observations(get_task(loaded.task).make("target"))
     in_run_seeds = [EVAL_SEED + e for e in range(int(config.get("eval_episodes", 10)))]
@@ -70,7 +75,6 @@ def main() -> None:
                    for s in in_run_seeds]
     finally:
         env.close()
-    lines = [json.loads(line) for line in (args.run / "metrics.jsonl").read_text().splitlines() if line.strip()]
     last = lines[-1]
     print(f"{loaded.method} on {loaded.task}, training seed {seed}, final policy ({loaded.steps} steps)")
     print(f"trainer's in-run evaluation at step {last['step']}: {last['target_return_mean']:.1f} "
