@@ -52,6 +52,7 @@ def _normalization_notes(board: Board) -> list[str]:
     return notes
 
 
+_PROGRESS_TITLE = "Reference runs and the source-target gap"
 _PROGRESS_HEADERS = ("task", "RL on source: source return", "RL on source: target return", "kept",
                      "RL on target (oracle runs)", "RL on source, normalized", "P(oracle > RL on source)")
 _PROGRESS_NOTE = ("Not submissions: the published runs of the two reference points (`leaderboard/reference-runs`, "
@@ -86,7 +87,7 @@ def _progress_cells(row: ReferenceProgress) -> list[tuple[str, str | float | Non
 def _progress_markdown(progress: Mapping[str, Sequence[ReferenceProgress]]) -> list[str]:
     lines = []
     for budget, rows in sorted(progress.items()):
-        lines += ["", f"## Reference runs and the source-target gap (`{budget}`)", "", _PROGRESS_NOTE, "",
+        lines += ["", f"## {_PROGRESS_TITLE} (`{budget}`)", "", _PROGRESS_NOTE, "",
                   "| " + " | ".join(_PROGRESS_HEADERS) + " |", "|---|" + "---:|" * (len(_PROGRESS_HEADERS) - 1)]
         for row in rows:
             lines.append("| " + " | ".join(_markdown_cell(text) for text, _ in _progress_cells(row)) + " |")
@@ -99,7 +100,7 @@ def _progress_html(progress: Mapping[str, Sequence[ReferenceProgress]]) -> str:
         body = "".join("<tr>" + "".join(_cell(text, sort, is_text=index == 0)
                                         for index, (text, sort) in enumerate(_progress_cells(row))) + "</tr>"
                        for row in rows)
-        parts.append(f"<h2>Reference runs and the source-target gap ({html.escape(budget)})</h2>"
+        parts.append(f"<h2>{_PROGRESS_TITLE} ({html.escape(budget)})</h2>"
                      f'<p class="note">{html.escape(_PROGRESS_NOTE)}</p>'
                      f'<table class="sortable" id="reference-runs-{html.escape(budget)}"><thead><tr>'
                      f"{_header_row(_PROGRESS_HEADERS, text_columns=1)}</tr></thead><tbody>{body}</tbody></table>")

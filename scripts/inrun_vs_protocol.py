@@ -24,7 +24,7 @@ import pathlib
 
 import numpy as np
 
-from baselines.train import EVAL_SEED
+from leaderboard.assemble import read_learning_curve
 from offdyn_bench.envs import flat_observations
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.evaluate import Agent, load_run_agents, read_evaluation, run_episode
@@ -55,29 +55,27 @@ def main() -> None:
     try:
         loaded = load_run_agents(args.run)
         evaluation = read_evaluation(args.run / "evaluation.json")
+        curve = read_learning_curve(args.run / "metrics.jsonl", len(loaded.agents))
     except OffdynError as error:
         raise SystemExit(f"error: {error}") from None
     if len(loaded.agents) != 1:
         raise SystemExit(f"error: {args.run} holds {len(loaded.agents)} training seeds; pass a run of one seed "
                          "(a sweep's run folder)")
-    config = json.loads((args.run / "config.json").read_text())
-    metrics = args.run / "metrics.jsonl"
-    lines = ([json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
-             if metrics.is_file() else [])
-    if not lines:
+    if not curve:
         raise SystemExit(f"error: {args.run} has no in-run evaluation (metrics.jsonl) to compare with")
+    # The episode seeds the trainer recorded for its in-run evaluation (load_run_agents checked the file).
+    in_run_seeds = [int(s) for s in json.loads((args.run / "result.json").read_text())["eval_episode_seeds"]]
     seed, agent = loaded.agents[0]
     env = flat_observations(get_task(loaded.task).make("target"))
-    in_run_seeds = [EVAL_SEED + e for e in range(int(config.get("eval_episodes", 10)))]
     try:
         exact = [run_episode(agent, env, s, f"episode seed {s}").episode_return for s in in_run_seeds]
         rounded = [run_episode(Float32Observations(agent), env, s, f"episode seed {s}").episode_return
                    for s in in_run_seeds]
     finally:
         env.close()
-    last = lines[-1]
+    last = curve[-1]
     print(f"{loaded.method} on {loaded.task}, training seed {seed}, final policy ({loaded.steps} steps)")
-    print(f"trainer's in-run evaluation at step {last['step']}: {last['target_return_mean']:.1f} "
+    print(f"trainer's in-run evaluation at step {last['step']}: {last['target_return'][0]:.1f} "
           f"({len(in_run_seeds)} episodes, torch float32)")
     print(_describe("its episode seeds, protocol loader (float64)", exact))
     print(_describe("its episode seeds, float32 observations", rounded))
