@@ -231,6 +231,26 @@ def gap(evaluations: list[Path] = typer.Argument(..., help="evaluation.json file
     typer.echo(json.dumps([g.to_dict() for g in gaps], indent=1) if as_json else gaps_markdown(gaps).rstrip("\n"))
 
 
+@protocol_app.command("admission")
+def admission(evaluations: list[Path] = typer.Argument(..., help="evaluation.json files of one budget: sac-source's "
+                                                                 "target-side records (source-side ones may be "
+                                                                 "given too); sac-target records beside them are "
+                                                                 "the oracle of a task without a recorded one."),
+              as_json: bool = typer.Option(False, "--json"),
+              reference_file: Path | None = typer.Option(None, "--reference-file", help="Reference scores "
+                                                         "(default: assets/reference_scores.json).")) -> None:
+    """The core suite's same-budget test per task: does the oracle beat RL on source in the target with
+    P(oracle > RL on source) >= 0.9 over 5 training seeds on each side (PROTOCOL.md §9)?"""
+    from offdyn_bench.evaluate import read_evaluation
+    from offdyn_bench.protocol.gap import admissions_markdown, admit, measure_gaps
+
+    with exit_on_error():
+        results = [admit(g) for g in measure_gaps([read_evaluation(path) for path in evaluations],
+                                                  str(reference_file) if reference_file is not None else None)]
+    typer.echo(json.dumps([a.to_dict() for a in results], indent=1) if as_json
+               else admissions_markdown(results).rstrip("\n"))
+
+
 @protocol_app.command("curves")
 def curves(paths: list[Path] = typer.Argument(..., help="metrics.jsonl files of trained runs, each with its "
                                                         "evaluation.json beside it (a sweep's run folders or "

@@ -127,6 +127,13 @@ policy keeps at most about half of its source return in the target (the screenin
 PROTOCOL.md). The H2O settings are not in version 1.0: their source-policy datasets need behaviour
 policies trained in the shifted simulators, which do not ship yet."""
 
+ADMISSION_PROBABILITY = 0.9
+"""The same-budget test a pair must pass to be in a budget's core suite (PROTOCOL.md §9, decision
+1 for version 1.1): its oracle beats RL on source in the target with P(oracle > RL on source) at
+least this, over at least :data:`MIN_SEEDS` training seeds on each side, both at that budget.
+Version 1.0's suite was screened before the test existed (with a shipped policy, §7); the command
+``offdyn-bench protocol admission`` reports how it fares."""
+
 
 def get_track(name: str) -> Track:
     if name not in TRACKS:

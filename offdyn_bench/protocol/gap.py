@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -87,6 +87,7 @@ class TaskGap:
 
 
 ORACLE_METHOD = "sac-target"
+RL_ON_SOURCE = "sac-source"
 
 
 def measure_gaps(records: Sequence[Mapping[str, Any]], reference_file: str | None = None) -> list[TaskGap]:
@@ -167,4 +168,69 @@ def gaps_markdown(gaps: Sequence[TaskGap]) -> str:
     if any(gap.oracle_from == "records" for gap in gaps):
         lines.append("* an oracle from the sac-target records given, for a task the reference file has none "
                      "for (not a recorded reference).")
+    return "\n".join(lines) + "\n"
+
+
+AdmissionVerdict = Literal["passes", "fails", "undecided"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Admission:
+    """A pair against the core suite's same-budget test (PROTOCOL.md §9, decision 1): does its
+    oracle beat RL on source in the target, with P(oracle > RL on source) >= the threshold over
+    at least ``MIN_SEEDS`` training seeds on each side?"""
+
+    task: str
+    budget: str
+    rl_on_source_seeds: int
+    oracle_seeds: int
+    probability: float | None
+    verdict: AdmissionVerdict
+    reason: str
+    in_core_suite: bool
+    """Whether the pair is in the current protocol version's core suite."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def admit(gap: TaskGap) -> Admission:
+    """The test on one measured gap of RL on source. Too few seeds on either side, or no oracle at the
+    gap's budget, is ``undecided`` (never a pass): the test is only as good as its seeds."""
+    from offdyn_bench.protocol.definition import ADMISSION_PROBABILITY, CORE_SUITE, MIN_SEEDS
+
+    if gap.method != RL_ON_SOURCE:
+        raise ProtocolError(f"the admission test compares the oracle with RL on source ({RL_ON_SOURCE}); "
+                            f"got records of {gap.method!r} on {gap.task}: pass {RL_ON_SOURCE}'s target-side "
+                            f"records (and {ORACLE_METHOD}'s for a task without a recorded oracle)")
+    oracle_seeds = len(gap.oracle_seed_means or ())
+    seeds = len(gap.target_seed_means)
+    probability = gap.oracle_better_probability
+    if gap.oracle_seed_means is None:
+        verdict, reason = "undecided", (f"no {gap.budget} oracle: record one (protocol reference oracle) or pass "
+                                        f"{ORACLE_METHOD}'s records")
+    elif min(seeds, oracle_seeds) < MIN_SEEDS:
+        short = [f"{n} {who} seed{'s' if n != 1 else ''}" for who, n in (("RL-on-source", seeds),
+                                                                          ("oracle", oracle_seeds)) if n < MIN_SEEDS]
+        verdict, reason = "undecided", f"{' and '.join(short)}; the test needs {MIN_SEEDS} on each side"
+    elif probability is not None and probability >= ADMISSION_PROBABILITY:
+        verdict, reason = "passes", f"P = {probability:.2f} >= {ADMISSION_PROBABILITY:.2f}"
+    else:
+        verdict, reason = "fails", f"P = {probability:.2f} < {ADMISSION_PROBABILITY:.2f}"
+    return Admission(gap.task, gap.budget, seeds, oracle_seeds, probability, verdict, reason, gap.task in CORE_SUITE)
+
+
+def admissions_markdown(admissions: Sequence[Admission]) -> str:
+    from offdyn_bench.protocol.definition import PROTOCOL_VERSION
+
+    budget = admissions[0].budget if admissions else "-"
+    lines = [f"| task | in core suite {PROTOCOL_VERSION} | RL-on-source seeds | oracle/{budget} seeds | "
+             "P(oracle > RL on source) | verdict |",
+             "|---|---|---:|---:|---:|---|"]
+    for one in admissions:
+        lines.append(f"| {one.task} | {'yes' if one.in_core_suite else 'no'} | {one.rl_on_source_seeds} | "
+                     f"{one.oracle_seeds} | {_number(one.probability, '{:.2f}')} | {one.verdict}: {one.reason} |")
+    core = [one for one in admissions if one.in_core_suite]
+    counts = ", ".join(f"{sum(one.verdict == v for one in core)} {v}" for v in ("passes", "fails", "undecided"))
+    lines += ["", f"Core-suite pairs given: {len(core)} ({counts}). The test: PROTOCOL.md §9, decision 1."]
     return "\n".join(lines) + "\n"

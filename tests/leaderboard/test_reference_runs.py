@@ -138,6 +138,26 @@ def test_protocol_md_gap_table_is_what_protocol_gap_computes_from_the_published_
         assert f"over {counts.pop()} `sac-source` lite seeds" in before, sorted(table)
 
 
+def test_protocol_md_names_the_core_pairs_that_pass_the_admission_test_on_the_published_runs():
+    """§9's decision names the core pairs where RL on source clearly fails at lite: exactly those that
+    `protocol admission` passes on the published runs; every other core pair fails it."""
+    import re
+
+    from offdyn_bench.protocol import CORE_SUITE
+    from offdyn_bench.protocol.gap import admit, measure_gaps
+
+    lite = [record for record in _records("sac-source") if record["budget"] == "lite"]
+    verdicts = {one.task: one.verdict for one in map(admit, measure_gaps(lite)) if one.task in CORE_SUITE}
+    assert set(verdicts) == set(CORE_SUITE)
+    text = " ".join((REPO / "PROTOCOL.md").read_text().split())
+    sentence = text[text.index("With every core pair measured at `lite`"):]
+    sentence = sentence[:sentence.index("On the other")]
+    named = set(re.findall(r"`([a-z0-9.-]+)`", sentence)) - {"lite"}
+    assert named == {task for task, verdict in verdicts.items() if verdict == "passes"}
+    assert {verdict for task, verdict in verdicts.items() if task not in named} == {"fails"}
+    assert "offdyn-bench protocol admission" in text
+
+
 # Publishing: a sweep's out folder, here built from the published records themselves.
 
 

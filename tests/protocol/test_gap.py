@@ -123,3 +123,68 @@ def test_sac_target_records_are_the_oracle_where_the_reference_file_has_none(ref
 def test_oracle_records_alone_are_no_gap(reference_file):
     with pytest.raises(OffdynError, match=r"only sac-target target-side records given; pass the method's records"):
         measure_gaps([record("sac-target", WALKER, {0: [1.0]})], str(reference_file))
+
+
+# The core suite's same-budget test (PROTOCOL.md §9, decision 1): P(oracle > RL on source) >= 0.9
+# over 5 training seeds each side.
+
+FIVE_RL_ON_SOURCE = {s: [float(s + 1)] for s in range(5)}  # seed means 1..5
+
+
+def _admission(oracle_means, rl_on_source=FIVE_RL_ON_SOURCE, reference_file=None):
+    from offdyn_bench.protocol.gap import admit
+
+    oracle = [record("sac-target", WALKER, {s: [m] for s, m in enumerate(oracle_means)})] if oracle_means else []
+    [gap] = measure_gaps([record("sac-source", WALKER, rl_on_source)] + oracle, str(reference_file))
+    return admit(gap)
+
+
+def test_admission_is_the_mann_whitney_test_at_its_threshold(reference_file):
+    # Oracle 3 against 1..5: beats 2, ties 1 (1/2); 6..9 beat all five: (2.5 + 20) / 25 = 0.90 exactly.
+    passes = _admission([3.0, 6.0, 7.0, 8.0, 9.0], reference_file=reference_file)
+    assert (passes.verdict, passes.probability, passes.reason) == ("passes", 0.9, "P = 0.90 >= 0.90")
+    assert (passes.rl_on_source_seeds, passes.oracle_seeds, passes.in_core_suite) == (5, 5, True)
+    # 2.5 beats 2 and ties none: 22 / 25 = 0.88, one half-win short.
+    fails = _admission([2.5, 6.0, 7.0, 8.0, 9.0], reference_file=reference_file)
+    assert (fails.verdict, fails.probability, fails.reason) == ("fails", 0.88, "P = 0.88 < 0.90")
+
+
+def test_admission_never_passes_on_too_few_seeds_or_without_an_oracle(reference_file):
+    # Four oracle seeds that beat every RL-on-source seed: P = 1, but four is not the protocol's five.
+    short = _admission([10.0, 11.0, 12.0, 13.0], reference_file=reference_file)
+    assert (short.verdict, short.probability) == ("undecided", 1.0)
+    assert short.reason == "4 oracle seeds; the test needs 5 on each side"
+    few = _admission([10.0] * 5, rl_on_source={0: [1.0]}, reference_file=reference_file)
+    assert (few.verdict, few.reason) == ("undecided", "1 RL-on-source seed; the test needs 5 on each side")
+    none = _admission([], reference_file=reference_file)
+    assert none.verdict == "undecided" and none.reason.startswith("no lite oracle") and none.probability is None
+
+
+def test_admission_refuses_another_methods_records(reference_file):
+    from offdyn_bench.protocol.gap import admit
+
+    [gap] = measure_gaps([record("dap", HOPPER, {0: [1.0]})], str(reference_file))
+    with pytest.raises(OffdynError, match=r"compares the oracle with RL on source \(sac-source\); got records of "
+                                          r"'dap' on hopper-gravity-0.5"):
+        admit(gap)
+
+
+def test_admission_command_reports_each_task_and_the_core_suite_count(tmp_path, reference_file):
+    paths = []
+    records = [record("sac-source", WALKER, FIVE_RL_ON_SOURCE),
+               record("sac-target", WALKER, {s: [m] for s, m in enumerate([3.0, 6.0, 7.0, 8.0, 9.0])}),
+               record("sac-source", "hopper-gravity-5.0", FIVE_RL_ON_SOURCE)]
+    for i, one in enumerate(records):
+        path = tmp_path / f"evaluation-{i}.json"
+        path.write_text(json.dumps(one))
+        paths.append(str(path))
+    runner = CliRunner()
+    result = runner.invoke(app, ["protocol", "admission", *paths, "--reference-file", str(reference_file)])
+    assert result.exit_code == 0, result.output
+    assert "| walker2d-gravity-2.0 | yes | 5 | 5 | 0.90 | passes: P = 0.90 >= 0.90 |" in result.output
+    assert "| hopper-gravity-5.0 | no | 5 | 0 | - | undecided: no lite oracle" in result.output
+    assert "Core-suite pairs given: 1 (1 passes, 0 fails, 0 undecided)." in result.output
+    rows = json.loads(runner.invoke(app, ["protocol", "admission", *paths, "--json", "--reference-file",
+                                          str(reference_file)]).output)
+    assert [(r["task"], r["verdict"]) for r in rows] == [("hopper-gravity-5.0", "undecided"),
+                                                         ("walker2d-gravity-2.0", "passes")]
