@@ -265,7 +265,7 @@ def _compute_documents(runs: dict[str, Any], trained: dict[str, TrainingCompute]
 
 @dataclasses.dataclass(frozen=True)
 class ReferenceProgress:
-    """One core task's published reference runs at one budget: RL on source on both sides (its gap,
+    """One task's published reference runs at one budget: RL on source on both sides (its gap,
     against the oracle reference) and the oracle runs (RL on target)."""
 
     task: str
@@ -273,12 +273,23 @@ class ReferenceProgress:
     """The task's :class:`offdyn_bench.protocol.gap.TaskGap` for ``sac-source``; None: no runs yet."""
     oracle_seed_means: tuple[float, ...]
     """Per published ``sac-target`` seed, its mean target return."""
+    in_core_suite: bool = True
+    """False for a candidate: a pair outside the core suite whose runs are published to test it."""
+
+    @property
+    def admission(self) -> Any | None:
+        """The core suite's same-budget test on the published runs
+        (:class:`offdyn_bench.protocol.gap.Admission`); None without RL-on-source runs."""
+        from offdyn_bench.protocol.gap import admit
+
+        return admit(self.rl_on_source) if self.rl_on_source is not None else None
 
 
 def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | None = None
                        ) -> dict[str, list[ReferenceProgress]]:
     """Per budget published under ``root``, a row for every core-suite task (empty where nothing is
-    published yet): what the reference submissions will hold, as far as it exists."""
+    published yet): what the reference submissions will hold, as far as it exists; then a row for
+    every other task with published runs, a candidate for the core suite."""
     from offdyn_bench.protocol import CORE_SUITE
     from offdyn_bench.protocol.gap import measure_gaps
     from offdyn_bench.protocol.scoring import seed_means
@@ -304,6 +315,8 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
         for path in sorted(budget_dir.glob(f"sac-target/*/*/{EVALUATION_FILE}")):
             record = read_checked(path)
             oracle.setdefault(record["task"], []).extend(seed_means(record).values())
-        progress[budget_dir.name] = [ReferenceProgress(task, gaps.get(task), tuple(oracle.get(task, ())))
-                                     for task in CORE_SUITE]
+        candidates = sorted((set(gaps) | set(oracle)) - set(CORE_SUITE))
+        progress[budget_dir.name] = [ReferenceProgress(task, gaps.get(task), tuple(oracle.get(task, ())),
+                                                       in_core_suite=task in CORE_SUITE)
+                                     for task in (*CORE_SUITE, *candidates)]
     return progress

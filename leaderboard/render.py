@@ -53,14 +53,19 @@ def _normalization_notes(board: Board) -> list[str]:
 
 
 _PROGRESS_TITLE = "Reference runs and the source-target gap"
-_PROGRESS_HEADERS = ("task", "RL on source: source return", "RL on source: target return", "kept",
-                     "RL on target (oracle runs)", "RL on source, normalized", "P(oracle > RL on source)")
+_PROGRESS_HEADERS = ("task", "core suite", "same-budget test", "RL on source: source return",
+                     "RL on source: target return", "kept", "RL on target (oracle runs)", "RL on source, normalized",
+                     "P(oracle > RL on source)")
+_PROGRESS_TEXT_COLUMNS = 3
 _PROGRESS_NOTE = ("Not submissions: the published runs of the two reference points (`leaderboard/reference-runs`, "
                   "RL on source evaluated on both sides of each task), as they come in: each core task's source-target "
                   "gap, and how far the oracle is from RL on source there. "
                   "Returns are means over training seeds, their number in brackets; kept = target / source return; "
                   "the normalized score and P(oracle > RL on source) use the task's oracle reference, '-' where "
-                  "it does not exist yet.")
+                  "it does not exist yet. Core suite: 'yes' for the protocol version's core suite, 'candidate' for "
+                  "a pair outside it whose runs are published to test it. Same-budget test (PROTOCOL.md §9, "
+                  "`offdyn-bench protocol admission`): whether the oracle beats RL on source with P >= 0.9 over 5 "
+                  "seeds each side; 'undecided' while a side has fewer seeds or the task no oracle.")
 
 
 def _progress_cells(row: ReferenceProgress) -> list[tuple[str, str | float | None]]:
@@ -81,14 +86,18 @@ def _progress_cells(row: ReferenceProgress) -> list[tuple[str, str | float | Non
         source_side = [mean(gap.source_seed_means), mean(gap.target_seed_means), number(gap.kept, "{:.2f}"),
                        mean(row.oracle_seed_means), number(gap.normalized_target),
                        number(gap.oracle_better_probability, "{:.2f}")]
-    return [(row.task, row.task), *source_side]
+    membership = "yes" if row.in_core_suite else "candidate"
+    admission = row.admission
+    verdict = admission.verdict if admission is not None else "-"
+    return [(row.task, row.task), (membership, membership), (verdict, verdict), *source_side]
 
 
 def _progress_markdown(progress: Mapping[str, Sequence[ReferenceProgress]]) -> list[str]:
     lines = []
     for budget, rows in sorted(progress.items()):
         lines += ["", f"## {_PROGRESS_TITLE} (`{budget}`)", "", _PROGRESS_NOTE, "",
-                  "| " + " | ".join(_PROGRESS_HEADERS) + " |", "|---|" + "---:|" * (len(_PROGRESS_HEADERS) - 1)]
+                  "| " + " | ".join(_PROGRESS_HEADERS) + " |",
+                  "|" + "---|" * _PROGRESS_TEXT_COLUMNS + "---:|" * (len(_PROGRESS_HEADERS) - _PROGRESS_TEXT_COLUMNS)]
         for row in rows:
             lines.append("| " + " | ".join(_markdown_cell(text) for text, _ in _progress_cells(row)) + " |")
     return lines
@@ -97,13 +106,13 @@ def _progress_markdown(progress: Mapping[str, Sequence[ReferenceProgress]]) -> l
 def _progress_html(progress: Mapping[str, Sequence[ReferenceProgress]]) -> str:
     parts = []
     for budget, rows in sorted(progress.items()):
-        body = "".join("<tr>" + "".join(_cell(text, sort, is_text=index == 0)
+        body = "".join("<tr>" + "".join(_cell(text, sort, is_text=index < _PROGRESS_TEXT_COLUMNS)
                                         for index, (text, sort) in enumerate(_progress_cells(row))) + "</tr>"
                        for row in rows)
         parts.append(f"<h2>{_PROGRESS_TITLE} ({html.escape(budget)})</h2>"
                      f'<p class="note">{html.escape(_PROGRESS_NOTE)}</p>'
                      f'<table class="sortable" id="reference-runs-{html.escape(budget)}"><thead><tr>'
-                     f"{_header_row(_PROGRESS_HEADERS, text_columns=1)}</tr></thead><tbody>{body}</tbody></table>")
+                     f"{_header_row(_PROGRESS_HEADERS, text_columns=_PROGRESS_TEXT_COLUMNS)}</tr></thead><tbody>{body}</tbody></table>")
     return "".join(parts)
 
 
