@@ -64,6 +64,14 @@ class RunRecord:
     error: str | None = None
     history: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
+    @property
+    def evaluate_wall_time_s(self) -> float | None:
+        """Wall time its attempts spent in evaluate commands; None where an attempt predates the count."""
+        spent = [a.get("evaluate_wall_time_s") for a in self.history if isinstance(a, dict)]
+        if not spent or not all(isinstance(x, (int, float)) for x in spent):
+            return None
+        return float(sum(spent))
+
     @classmethod
     def of(cls, run: Run, stored: dict[str, Any] | None) -> RunRecord:
         record = cls(method=run.method, task=run.task, seeds=list(run.seeds), folder=str(run.folder),
@@ -146,7 +154,9 @@ class _Progress:
 
     The ETA weighs each remaining run by the mean wall time of finished runs of its kind: a run
     that trains, or one that only scores another run's policy (seconds, not the training's
-    minutes; counting it as a training would put a source-only sweep's ETA hours late). A finished
+    minutes; counting it as a training would put a source-only sweep's ETA hours late). Before any
+    scoring run has finished, one counts what finished trainings spent in their own evaluate
+    commands (the same work); before that, the mean of all finished runs. A finished
     training counts what it took over all its attempts (its own count, carried in its checkpoints)
     when that is more than the sweep saw: a run resumed from a checkpoint is not a short run.
     A running training counts its remaining steps at its own latest pace (from its learning
@@ -164,6 +174,8 @@ class _Progress:
         self.progress_of = progress_of or (lambda _run_id: None)
         """Per run id, how far its training has got (:func:`baselines.run_folder.training_progress`)."""
         self.walls: dict[str, list[float]] = {"train": [], "score": []}
+        self.evaluate_walls: list[float] = []
+        """Per finished training, the wall time of its evaluate commands."""
         self.started: dict[str, float] = {}
         """Per run id in flight, when its current attempt started (``clock``)."""
         self.looked: dict[str, TrainingProgress | None] = {}
@@ -176,7 +188,9 @@ class _Progress:
     def kind(self, run_id: str) -> str:
         return self.kinds.get(run_id, "train")
 
-    def add_wall(self, run_id: str, wall: float) -> None:
+    def add_wall(self, run_id: str, wall: float, evaluate_wall: float | None = None) -> None:
+        if self.kind(run_id) == "train" and evaluate_wall:
+            self.evaluate_walls.append(evaluate_wall)
         if self.kind(run_id) == "train":
             progress = self.progress_of(run_id)
             if progress is not None and progress.compute is not None and progress.compute.complete:
@@ -210,8 +224,9 @@ class _Progress:
             eta = 0.0
         elif every:
             def mean_wall(kind: str) -> float:
-                # A kind with no finished run yet borrows the mean of all finished runs.
-                walls = walls_of[kind] or every
+                # A kind with no finished run yet borrows: scoring, the trainings' own evaluations;
+                # failing those, the mean of all finished runs.
+                walls = walls_of[kind] or (self.evaluate_walls if kind == "score" else []) or every
                 return sum(walls) / len(walls)
 
             def left(run_id: str) -> float:
@@ -315,7 +330,8 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     progress_of=lambda run_id: training_progress(folder_of[run_id]))
                 for run in runs:
                     if records[run.run_id].status == "done":
-                        progress.add_wall(run.run_id, records[run.run_id].wall_time_s)
+                        progress.add_wall(run.run_id, records[run.run_id].wall_time_s,
+                                          records[run.run_id].evaluate_wall_time_s)
                 tries_left = {run.run_id: 1 + spec.max_retries for run in pending}
                 in_flight: dict[Any, Run] = {}
                 trainer_of = {run.folder: run for run in runs if run.shared_training is None}
@@ -363,7 +379,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                             tries_left[run.run_id] -= 1
                             if outcome.ok:
                                 record.status, record.error, record.mean_return = "done", None, outcome.mean_return
-                                progress.add_wall(run.run_id, record.wall_time_s)
+                                progress.add_wall(run.run_id, record.wall_time_s, record.evaluate_wall_time_s)
                             elif tries_left[run.run_id] > 0:
                                 record.status, record.error = "pending", outcome.error
                                 say(f"sweep: {run.run_id} attempt {record.attempts} failed ({outcome.error}); "

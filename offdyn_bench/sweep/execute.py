@@ -43,6 +43,9 @@ class AttemptOutcome:
     host: str
     mean_return: float | None = None
     """Mean target return over the evaluated seeds and episodes (when ``ok``)."""
+    evaluate_wall_time_s: float = 0.0
+    """The part of ``wall_time_s`` its evaluate commands took: what a run that only scores a
+    policy costs, which the sweep's ETA needs before any such run has finished."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -59,6 +62,7 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
     host = socket.gethostname()
     started = time.monotonic()
     cpu = 0.0
+    evaluating = 0.0
     run.log.parent.mkdir(parents=True, exist_ok=True)
     with open(run.log, "a", buffering=1) as log:
         log.write(f"=== attempt {attempt} of {run.run_id} on {host}, {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
@@ -67,7 +71,7 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
                     mean_return: float | None = None) -> AttemptOutcome:
             result = AttemptOutcome(ok=ok, stage=stage, exit_code=exit_code, error=error,
                                     wall_time_s=round(time.monotonic() - started, 3), cpu_time_s=round(cpu, 3),
-                                    host=host, mean_return=mean_return)
+                                    host=host, mean_return=mean_return, evaluate_wall_time_s=round(evaluating, 3))
             log.write(f"=== attempt {attempt}: {'done' if ok else 'failed at ' + stage}"
                       + (f" ({error})" if error else "") + "\n")
             return result
@@ -96,8 +100,10 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
                 # An earlier attempt (or a sweep before the source side was owed) wrote it.
                 log.write(f"=== the {side} side is evaluated already: {evaluation_path(run, side)}\n")
                 continue
+            evaluation_started = time.monotonic()
             code, used = _run_logged(command_line(args), log)
             cpu += used
+            evaluating += time.monotonic() - evaluation_started
             if code != 0:
                 return outcome(False, "evaluate", code, _exit_text("evaluate", code, run.log))
             if finished_evaluation(run, side) is None:

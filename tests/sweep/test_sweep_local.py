@@ -41,6 +41,8 @@ def test_a_tiny_sweep_trains_and_evaluates_every_run(finished_sweep):
         assert entry["status"] == "done" and entry["attempts"] == 1
         assert entry["wall_time_s"] > 0 and entry["cpu_time_s"] > 0
         assert entry["history"][0]["ok"] is True and entry["history"][0]["exit_code"] is None
+        # The evaluations' share of the attempt: some of it, not all (the training took the rest).
+        assert 0 < entry["history"][0]["evaluate_wall_time_s"] < entry["history"][0]["wall_time_s"]
         assert entry["mean_return"] == pytest.approx(sum(evaluation["seeds"][0]["returns"]) / 2)
         assert (run.folder / "result.json").exists()
     assert report.launched == 2 and not report.failed
@@ -258,7 +260,7 @@ def test_a_spec_changed_under_finished_runs_is_refused_and_changes_nothing(finis
 def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
     # A source-only sweep: one training scored on three more tasks. Counting the three scoring
     # runs as trainings would say 80 minutes; they take seconds.
-    from offdyn_bench.sweep.driver import RunRecord, _Progress
+    from offdyn_bench.sweep.driver import RunRecord, _Progress, format_duration
 
     def record(status: str) -> RunRecord:
         return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
@@ -270,8 +272,18 @@ def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
     progress = _Progress(None, len(records), kinds)
     assert progress.line(records, capacity=1).endswith("ETA ?")  # nothing finished: no estimate
     progress.add_wall("train-0", 1200.0)
-    # No scoring run finished yet: each borrows the mean of what did finish.
+    # No scoring run finished yet, and no time known for the training's evaluations: each
+    # borrows the mean of what did finish.
     assert progress.line(records, capacity=1).endswith("ETA 1h20m")
+    # With it, each counts what the training's own evaluate commands took: the same work.
+    timed = _Progress(None, len(records), kinds)
+    timed.add_wall("train-0", 1200.0, evaluate_wall=8.0)
+    assert timed.line(records, capacity=1).endswith(f"ETA {format_duration(1200.0 + 3 * 8.0)}")
+    # A record's evaluations over its attempts; unknown where an attempt was recorded before the count.
+    assert RunRecord("m", "t", [0], "f", "l", history=[{"evaluate_wall_time_s": 2.5},
+                                                       {"evaluate_wall_time_s": 1.0}]).evaluate_wall_time_s == 3.5
+    assert RunRecord("m", "t", [0], "f", "l", history=[{"wall_time_s": 9.0},
+                                                       {"evaluate_wall_time_s": 1.0}]).evaluate_wall_time_s is None
     progress.add_wall("score-0", 6.0)
     assert progress.line(records, capacity=1) == "sweep: 2/6 done, 1 running, 0 failed, 3 pending; ETA 20m18s"
     assert progress.line(records, capacity=2).endswith("ETA 10m09s")  # two workers share the work
