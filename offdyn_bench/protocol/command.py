@@ -15,6 +15,7 @@ import typer
 from offdyn_bench.errors import OffdynError, exit_on_error
 
 if TYPE_CHECKING:
+    from offdyn_bench.protocol.gap import TaskGap
     from offdyn_bench.protocol.references import ReferenceScore
 
 protocol_app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -222,13 +223,20 @@ def gap(evaluations: list[Path] = typer.Argument(..., help="evaluation.json file
                                                    "assets/reference_scores.json).")) -> None:
     """The source-target gap per task: the return in the source and in the target, the fraction kept,
     and how far below the task's oracle it stays (normalized score, P(oracle > method))."""
+    from offdyn_bench.protocol.gap import gaps_markdown
+
+    gaps = _measured_gaps(evaluations, reference_file)
+    typer.echo(json.dumps([g.to_dict() for g in gaps], indent=1) if as_json else gaps_markdown(gaps).rstrip("\n"))
+
+
+def _measured_gaps(evaluations: list[Path], reference_file: Path | None) -> list[TaskGap]:
+    """The gap per (method, task) of the evaluation files, errors as one line each (exit code 2)."""
     from offdyn_bench.evaluate import read_evaluation
-    from offdyn_bench.protocol.gap import gaps_markdown, measure_gaps
+    from offdyn_bench.protocol.gap import measure_gaps
 
     with exit_on_error():
-        gaps = measure_gaps([read_evaluation(path) for path in evaluations],
+        return measure_gaps([read_evaluation(path) for path in evaluations],
                             str(reference_file) if reference_file is not None else None)
-    typer.echo(json.dumps([g.to_dict() for g in gaps], indent=1) if as_json else gaps_markdown(gaps).rstrip("\n"))
 
 
 @protocol_app.command("admission")
@@ -241,12 +249,11 @@ def admission(evaluations: list[Path] = typer.Argument(..., help="evaluation.jso
                                                          "(default: assets/reference_scores.json).")) -> None:
     """The core suite's same-budget test per task: does the oracle beat RL on source in the target with
     P(oracle > RL on source) >= 0.9 over 5 training seeds on each side (PROTOCOL.md §9)?"""
-    from offdyn_bench.evaluate import read_evaluation
-    from offdyn_bench.protocol.gap import admissions_markdown, admit, measure_gaps
+    from offdyn_bench.protocol.gap import admissions_markdown, admit
 
+    gaps = _measured_gaps(evaluations, reference_file)
     with exit_on_error():
-        results = [admit(g) for g in measure_gaps([read_evaluation(path) for path in evaluations],
-                                                  str(reference_file) if reference_file is not None else None)]
+        results = [admit(g) for g in gaps]
     typer.echo(json.dumps([a.to_dict() for a in results], indent=1) if as_json
                else admissions_markdown(results).rstrip("\n"))
 

@@ -160,13 +160,17 @@ def test_admission_never_passes_on_too_few_seeds_or_without_an_oracle(reference_
     assert none.verdict == "undecided" and none.reason.startswith("no lite oracle") and none.probability is None
 
 
-def test_admission_refuses_another_methods_records(reference_file):
+def test_admission_refuses_another_methods_records(tmp_path, reference_file):
     from offdyn_bench.protocol.gap import admit
 
     [gap] = measure_gaps([record("dap", HOPPER, {0: [1.0]})], str(reference_file))
     with pytest.raises(OffdynError, match=r"compares the oracle with RL on source \(sac-source\); got records of "
                                           r"'dap' on hopper-gravity-0.5"):
         admit(gap)
+    path = tmp_path / "evaluation.json"
+    path.write_text(json.dumps(record("dap", HOPPER, {0: [1.0]})))
+    refused = CliRunner().invoke(app, ["protocol", "admission", str(path), "--reference-file", str(reference_file)])
+    assert refused.exit_code == 2 and "error: the admission test compares the oracle with RL on source" in refused.output
 
 
 def test_admission_command_reports_each_task_and_the_core_suite_count(tmp_path, reference_file):
