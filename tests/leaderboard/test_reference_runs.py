@@ -165,7 +165,7 @@ def test_protocol_md_names_the_core_pairs_that_pass_the_admission_test_on_the_pu
 def sweep_out(tmp_path) -> Path:
     out = tmp_path / "sweep"
     for path in PUBLISHED:
-        if _parts(path)[2].startswith("hopper-gravity"):
+        if _parts(path)[2] == "hopper-gravity-0.5":
             _, method, task, label, name = _parts(path)
             target = out / "runs" / method / task / label / name
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -182,7 +182,7 @@ def _tree(root: Path) -> dict[str, bytes]:
 def test_publishing_copies_records_byte_for_byte_and_again_changes_nothing(sweep_out, tmp_path):
     dest = tmp_path / "published"
     report = publish_reference_runs(sweep_out, dest)
-    assert len(report.written) == sum(1 for p in PUBLISHED if _parts(p)[2].startswith("hopper-gravity"))
+    assert len(report.written) == sum(1 for p in PUBLISHED if _parts(p)[2] == "hopper-gravity-0.5")
     assert report.unfinished == (sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5" / "seed-9",)
     for path in report.written:
         _, method, task, label, name = path.relative_to(dest).parts
