@@ -189,9 +189,9 @@ class _Progress:
         return self.kinds.get(run_id, "train")
 
     def add_wall(self, run_id: str, wall: float, evaluate_wall: float | None = None) -> None:
-        if self.kind(run_id) == "train" and evaluate_wall:
-            self.evaluate_walls.append(evaluate_wall)
         if self.kind(run_id) == "train":
+            if evaluate_wall:
+                self.evaluate_walls.append(evaluate_wall)
             progress = self.progress_of(run_id)
             if progress is not None and progress.compute is not None and progress.compute.complete:
                 wall = max(wall, progress.compute.wall_time_s)

@@ -84,12 +84,18 @@ def test_bad_evaluations_are_refused_with_what_was_expected(records, message, re
         measure_gaps(records, str(reference_file))
 
 
-def test_gap_command_reads_evaluation_files(tmp_path, reference_file):
+def write_records(folder, records) -> list[str]:
+    """Each record as its own evaluation file, as the commands read them; their paths."""
     paths = []
-    for i, one in enumerate(both_sides()):
-        path = tmp_path / f"evaluation-{i}.json"
+    for i, one in enumerate(records):
+        path = folder / f"evaluation-{i}.json"
         path.write_text(json.dumps(one))
         paths.append(str(path))
+    return paths
+
+
+def test_gap_command_reads_evaluation_files(tmp_path, reference_file):
+    paths = write_records(tmp_path, both_sides())
     runner = CliRunner()
     result = runner.invoke(app, ["protocol", "gap", *paths, "--reference-file", str(reference_file)])
     assert result.exit_code == 0, result.output
@@ -167,21 +173,16 @@ def test_admission_refuses_another_methods_records(tmp_path, reference_file):
     with pytest.raises(OffdynError, match=r"compares the oracle with RL on source \(sac-source\); got records of "
                                           r"'dap' on hopper-gravity-0.5"):
         admit(gap)
-    path = tmp_path / "evaluation.json"
-    path.write_text(json.dumps(record("dap", HOPPER, {0: [1.0]})))
-    refused = CliRunner().invoke(app, ["protocol", "admission", str(path), "--reference-file", str(reference_file)])
+    paths = write_records(tmp_path, [record("dap", HOPPER, {0: [1.0]})])
+    refused = CliRunner().invoke(app, ["protocol", "admission", *paths, "--reference-file", str(reference_file)])
     assert refused.exit_code == 2 and "error: the admission test compares the oracle with RL on source" in refused.output
 
 
 def test_admission_command_reports_each_task_and_the_core_suite_count(tmp_path, reference_file):
-    paths = []
-    records = [record("sac-source", WALKER, FIVE_RL_ON_SOURCE),
-               record("sac-target", WALKER, {s: [m] for s, m in enumerate([3.0, 6.0, 7.0, 8.0, 9.0])}),
-               record("sac-source", "hopper-gravity-5.0", FIVE_RL_ON_SOURCE)]
-    for i, one in enumerate(records):
-        path = tmp_path / f"evaluation-{i}.json"
-        path.write_text(json.dumps(one))
-        paths.append(str(path))
+    paths = write_records(tmp_path, [
+        record("sac-source", WALKER, FIVE_RL_ON_SOURCE),
+        record("sac-target", WALKER, {s: [m] for s, m in enumerate([3.0, 6.0, 7.0, 8.0, 9.0])}),
+        record("sac-source", "hopper-gravity-5.0", FIVE_RL_ON_SOURCE)])
     runner = CliRunner()
     result = runner.invoke(app, ["protocol", "admission", *paths, "--reference-file", str(reference_file)])
     assert result.exit_code == 0, result.output
