@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 import gymnasium
 import mujoco
@@ -29,6 +29,7 @@ from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 from offdyn_bench.effects import ChannelEffects, Effect, effects_from_dicts, split_effects
 from offdyn_bench.effects.model import ModelEffect, compile_model
+from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.robots import ROBOTS, get_robot
 from offdyn_bench.state_rows import ReadOnlyRows
 
@@ -198,19 +199,64 @@ for _robot in ROBOTS.values():
     ENV_CLASSES[_robot.name] = _cls
 
 
+ControlCostOn = Literal["applied", "commanded"]
+CONTROL_COST_ON: tuple[ControlCostOn, ...] = ("applied", "commanded")
+
+
+class CommandedControlCost(gymnasium.Wrapper):
+    """Charge the robot's control cost on the action the policy commanded, not on the one that
+    reached the motors after the action-channel effects (joint noise, bias, gain, ...).
+
+    Gymnasium's locomotion envs charge ``ctrl_cost_weight * |a|^2`` on the action they are stepped
+    with. Behind :class:`ChannelEffects` that is the *applied* action, so a joint-noise target also
+    charges for noise nobody commanded: a reward shift on top of the dynamics shift (on the Ant
+    at noise std 0.5, about 1.0 per step, as much as it earns for staying up). Off-dynamics RL
+    assumes one reward on both sides; this wrapper restores it: the reward is the robot's own,
+    less the cost it charged on the applied action, plus the cost of the commanded one.
+    ``info["reward_ctrl"]`` becomes the commanded action's term and
+    ``info["reward_ctrl_applied"]`` keeps the robot's.
+    """
+
+    def __init__(self, env: gymnasium.Env) -> None:
+        super().__init__(env)
+        control_cost = getattr(env.unwrapped, "control_cost", None)
+        if not callable(control_cost):
+            raise OffdynError(f"{type(env.unwrapped).__name__} has no control_cost(action) to charge on the "
+                              "commanded action; control_cost_on='commanded' needs one of the Gymnasium "
+                              "locomotion robots (Ant, HalfCheetah, Hopper, Walker2d)")
+        self._control_cost = control_cost
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if "reward_ctrl" not in info:
+            raise OffdynError(f"{type(self.env.unwrapped).__name__}.step gave no info['reward_ctrl']: the "
+                              "applied action's control cost cannot be taken back out of its reward")
+        applied_term = float(info["reward_ctrl"])  # the robot's own: -cost(applied action)
+        commanded_term = -float(self._control_cost(np.asarray(action, dtype=float)))
+        info["reward_ctrl_applied"] = applied_term
+        info["reward_ctrl"] = commanded_term
+        return obs, float(reward) - applied_term + commanded_term, terminated, truncated, info
+
+
 def make_robot_env(robot: str, effects: EffectsLike = (), extra_effects: EffectsLike = (),
-                   **env_kwargs: Any) -> gymnasium.Env:
+                   control_cost_on: ControlCostOn = "applied", **env_kwargs: Any) -> gymnasium.Env:
     """Build ``robot``'s environment with ``effects`` (then ``extra_effects``) applied.
 
     ``extra_effects`` lets a registered task be extended without re-listing its effects, e.g.
     ``gymnasium.make("offdyn/Hopper-gravity-0.5-source-v0", extra_effects=calibrated)``.
+    ``control_cost_on="commanded"`` charges the robot's control cost on the policy's action
+    rather than on the action the channel effects made of it (:class:`CommandedControlCost`).
     """
     get_robot(robot)
+    if control_cost_on not in CONTROL_COST_ON:
+        raise UnknownNameError("control_cost_on", control_cost_on, CONTROL_COST_ON)
     all_effects = effects_from_dicts(effects) + effects_from_dicts(extra_effects)
     model_effects, channel_effects = split_effects(all_effects)
     env = ENV_CLASSES[robot](model_effects=model_effects, **env_kwargs)
     if channel_effects:
         env = ChannelEffects(env, channel_effects)  # type: ignore[arg-type]
+    if control_cost_on == "commanded":
+        env = CommandedControlCost(env)
     return env
 
 

@@ -6,13 +6,17 @@ of its target (the "real" system), and a version. Each pair registers two Gymnas
     offdyn/<Robot>-<shift>[-<part>]-<level>-{source,target}-v<version>
 
 and is known to the CLI by its lower-case name, e.g. ``hopper-gravity-0.5``. Released versions
-are frozen: a change of dynamics is a new version.
+are frozen: a change of dynamics (or of the reward) is a new version, registered beside the old
+one. Version 0 is the bare name; a later version's name ends in ``-v<N>``
+(``ant-joint-noise-0.5-v1``), so that every name means one fixed pair and records, datasets and
+reference scores made for one version are never read as another's.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from collections.abc import Iterable, Mapping
 from types import MappingProxyType
 from typing import Any, Literal
@@ -36,6 +40,7 @@ from offdyn_bench.effects import (
     LimbSize,
     effects_from_dicts,
 )
+from offdyn_bench.envs import CONTROL_COST_ON, ControlCostOn
 from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.robotics.adroit import adroit_pairs
 from offdyn_bench.robotics.mazes import antmaze_pairs
@@ -68,6 +73,17 @@ class TaskPair:
     ``movestraight``), passed to the env; ``None`` for robots with one task."""
     target_engine: str = "mujoco"
     """The physics engine of the target (a key of ``ENGINE_ENTRY_POINTS``); sources run on MuJoCo."""
+    control_cost_on: ControlCostOn = "applied"
+    """Which action the robot's control cost is charged on where action-channel effects change
+    it: ``applied`` (what reached the motors; Gymnasium's own reward, version 0 of the joint-noise
+    pairs) or ``commanded`` (the policy's action, so that only the dynamics differ between the
+    sides; :class:`offdyn_bench.envs.CommandedControlCost`)."""
+
+    def __post_init__(self) -> None:
+        if self.control_cost_on not in CONTROL_COST_ON:
+            raise UnknownNameError("control_cost_on", self.control_cost_on, CONTROL_COST_ON)
+        if self.version < 0:
+            raise OffdynError(f"task version must be >= 0, got {self.version}")
 
     @property
     def pair_id(self) -> str:
@@ -77,8 +93,8 @@ class TaskPair:
 
     @property
     def name(self) -> str:
-        """The CLI name: ``hopper-gravity-0.5``."""
-        return self.pair_id.lower()
+        """The CLI name: ``hopper-gravity-0.5``; a later version carries it: ``ant-joint-noise-0.5-v1``."""
+        return self.pair_id.lower() + (f"-v{self.version}" if self.version else "")
 
     def env_id(self, side: Side) -> str:
         _check_side(side)
@@ -98,6 +114,10 @@ class TaskPair:
         kwargs: dict[str, Any] = {"robot": self.robot, "effects": [e.to_dict() for e in self.effects(side)]}
         if self.task is not None:
             kwargs["task"] = self.task
+        # Only a side whose action channel is changed charges differently; a side without such
+        # effects keeps the plain kwargs, so a nominal source stays the one every pair shares.
+        if self.control_cost_on != "applied" and any(getattr(e, "channel", None) == "action" for e in self.effects(side)):
+            kwargs["control_cost_on"] = self.control_cost_on
         return kwargs
 
     def engine(self, side: Side) -> str:
@@ -112,12 +132,18 @@ class TaskPair:
 
     def make(self, side: Side, **kwargs: Any) -> gymnasium.Env:
         """``gymnasium.make`` of this pair's ``side`` id (registered on import)."""
-        return gymnasium.make(self.env_id(side), **kwargs)
+        with warnings.catch_warnings():
+            # Gymnasium calls a version with a later one beside it out of date; here the version
+            # was chosen by name (protocol 1.0 pins version 0 of the joint-noise pairs).
+            warnings.filterwarnings("ignore", message=".*is out of date. You should consider upgrading",
+                                    category=DeprecationWarning)
+            return gymnasium.make(self.env_id(side), **kwargs)
 
     def to_dict(self) -> dict[str, Any]:
         # "task" only where set: the definitions (and dataset recipes' hashes) of other pairs stay as they were.
         engine = {"target_engine": self.target_engine} if self.target_engine != "mujoco" else {}
-        return ({"task": self.task} if self.task is not None else {}) | engine | {
+        cost = {"control_cost_on": self.control_cost_on} if self.control_cost_on != "applied" else {}
+        return ({"task": self.task} if self.task is not None else {}) | engine | cost | {
             "name": self.name,
             "robot": self.robot,
             "shift": self.shift,
@@ -136,6 +162,7 @@ class TaskPair:
         return cls(robot=data["robot"], shift=data["shift"], part=data.get("part"), level=data["level"],
                    version=int(data.get("version", 0)), description=data.get("description", ""),
                    task=data.get("task"), target_engine=data.get("target_engine", "mujoco"),
+                   control_cost_on=data.get("control_cost_on", "applied"),
                    source_effects=effects_from_dicts(data["source_effects"]),
                    target_effects=effects_from_dicts(data["target_effects"]))
 
@@ -208,6 +235,14 @@ def _grid() -> list[TaskPair]:
         pairs += [_shifted(robot, "joint-noise", _level(std), [ActionNoise(std=std)],
                            description=f"target action noise N(0, {std:g}^2) on every actuator")
                   for std in JOINT_NOISE_STDS]
+        # Version 1 charges the control cost on the commanded action (protocol 1.1's decision 4):
+        # version 0's target also charged the noise, a reward shift that on the Ant outweighs
+        # the dynamics shift. Both stay registered; records and datasets name their version.
+        pairs += [dataclasses.replace(
+            _shifted(robot, "joint-noise", _level(std), [ActionNoise(std=std)],
+                     description=f"target action noise N(0, {std:g}^2) on every actuator; control cost "
+                                 "charged on the commanded action"),
+            version=1, control_cost_on="commanded") for std in JOINT_NOISE_STDS]
     for robot in ("HalfCheetah", "Walker2d"):
         pairs += [
             _h2o(robot, "h2o-gravity", "2.0", [Gravity(scale=2.0)], "H2O setting: simulator gravity x2"),
@@ -283,6 +318,9 @@ def get_task(name: str) -> TaskPair:
         lowered = str(name).lower()
         if lowered in TASKS:
             return TASKS[lowered]
+        # Version 0 is the bare name; "<name>-v0" says the same explicitly.
+        if lowered.endswith("-v0") and lowered.removesuffix("-v0") in TASKS:
+            return TASKS[lowered.removesuffix("-v0")]
         raise UnknownNameError("task", name, TASKS)
     return TASKS[name]
 

@@ -382,7 +382,8 @@ def replay_transitions(policy: str) -> int:
 
 def default_tasks() -> list[TaskPair]:
     """The default set: one level of every shift family for each locomotion robot (the middle
-    of the grid: x0.5 scales, the first part at ``medium``, action noise 0.5), plus every H2O
+    of the grid: x0.5 scales, the first part at ``medium``, action noise 0.5 in both of its
+    versions), plus every H2O
     setting, both wheel-legged tasks, the MuJoCo-to-DART pairs and the protocol's core suite.
     Everything else in the grid builds on demand."""
     from offdyn_bench.protocol.definition import CORE_SUITE
