@@ -67,6 +67,8 @@ def cases(robot: str) -> list[tuple[str, str]]:
         ("model effects (morph)", next(f"offdyn/{robot}-morph-{p}-easy-target-v0"
                                        for p in offdyn_bench.robots.ROBOTS[robot].morph_parts)),
         ("channel effects (joint noise 0.1)", f"offdyn/{robot}-joint-noise-0.1-target-v0"),
+        # Version 1: the same noise, the control cost charged on the commanded action (one wrapper more).
+        ("joint noise 0.1, cost on command (v1)", f"offdyn/{robot}-joint-noise-0.1-target-v1"),
     ]
 
 

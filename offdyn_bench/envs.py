@@ -219,23 +219,32 @@ class CommandedControlCost(gymnasium.Wrapper):
 
     def __init__(self, env: gymnasium.Env) -> None:
         super().__init__(env)
-        control_cost = getattr(env.unwrapped, "control_cost", None)
-        if not callable(control_cost):
-            raise OffdynError(f"{type(env.unwrapped).__name__} has no control_cost(action) to charge on the "
-                              "commanded action; control_cost_on='commanded' needs one of the Gymnasium "
-                              "locomotion robots (Ant, HalfCheetah, Hopper, Walker2d)")
-        self._control_cost = control_cost
+        robot = env.unwrapped
+        control_cost, weight = getattr(robot, "control_cost", None), getattr(robot, "_ctrl_cost_weight", None)
+        if not callable(control_cost) or not isinstance(weight, (int, float)):
+            raise OffdynError(f"{type(robot).__name__} has no control_cost(action) with a _ctrl_cost_weight to "
+                              "charge on the commanded action; control_cost_on='commanded' needs one of the "
+                              "Gymnasium locomotion robots (Ant, HalfCheetah, Hopper, Walker2d)")
+        # The cost is recomputed here as weight x a.a (a third of the time of the robot's own
+        # np.sum(np.square(a))): refuse a robot whose cost has another form.
+        probe = np.linspace(-1.0, 1.0, int(np.prod(env.action_space.shape)))
+        if not math.isclose(float(control_cost(probe)), weight * float(probe @ probe), rel_tol=1e-12):
+            raise OffdynError(f"{type(robot).__name__}.control_cost is not ctrl_cost_weight x |a|^2; "
+                              "control_cost_on='commanded' cannot recompute it")
+        self._weight = float(weight)
 
     def step(self, action):
         obs, reward, terminated, truncated, info = self.env.step(action)
-        if "reward_ctrl" not in info:
-            raise OffdynError(f"{type(self.env.unwrapped).__name__}.step gave no info['reward_ctrl']: the "
-                              "applied action's control cost cannot be taken back out of its reward")
-        applied_term = float(info["reward_ctrl"])  # the robot's own: -cost(applied action)
-        commanded_term = -float(self._control_cost(np.asarray(action, dtype=float)))
+        command = np.asarray(action, dtype=np.float64).ravel()
+        commanded_term = -self._weight * float(command @ command)
+        try:
+            applied_term = info["reward_ctrl"]  # the robot's own: -cost(applied action)
+        except KeyError:
+            raise OffdynError(f"{type(self.env.unwrapped).__name__}.step gave no info['reward_ctrl']: the applied "
+                              "action's control cost cannot be taken back out of its reward") from None
         info["reward_ctrl_applied"] = applied_term
         info["reward_ctrl"] = commanded_term
-        return obs, float(reward) - applied_term + commanded_term, terminated, truncated, info
+        return obs, reward - applied_term + commanded_term, terminated, truncated, info
 
 
 def make_robot_env(robot: str, effects: EffectsLike = (), extra_effects: EffectsLike = (),

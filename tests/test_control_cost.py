@@ -133,7 +133,7 @@ def test_commanded_cost_without_action_effects_changes_nothing():
 
 
 def test_commanded_cost_refuses_robots_without_a_control_cost_and_unknown_values():
-    with pytest.raises(OffdynError, match="InvertedPendulumWithEffects has no control_cost"):
+    with pytest.raises(OffdynError, match="InvertedPendulumWithEffects has no control_cost\\(action\\) with a _ctrl_cost_weight"):
         make_robot_env("InvertedPendulum", [ActionNoise(std=0.1)], control_cost_on="commanded")
     with pytest.raises(UnknownNameError, match="unknown control_cost_on 'motor'; valid names: 'applied', 'commanded'"):
         make_robot_env("Hopper", [ActionNoise(std=0.1)], control_cost_on="motor")  # type: ignore[arg-type]
