@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, Literal
+from typing import Any
 
 import gymnasium
 import mujoco
@@ -27,7 +27,8 @@ import numpy as np
 from gymnasium import utils
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from offdyn_bench.effects import ChannelEffects, Effect, effects_from_dicts, split_effects
+from offdyn_bench.effects import (CONTROL_COST_ON, ChannelEffects, ControlCostOn, Effect, effects_from_dicts,
+                                  split_effects)
 from offdyn_bench.effects.model import ModelEffect, compile_model
 from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.robots import ROBOTS, get_robot
@@ -197,10 +198,6 @@ for _robot in ROBOTS.values():
     _cls = _with_model_effects(_robot.load_env_class())
     globals()[_cls.__name__] = _cls
     ENV_CLASSES[_robot.name] = _cls
-
-
-ControlCostOn = Literal["applied", "commanded"]
-CONTROL_COST_ON: tuple[ControlCostOn, ...] = ("applied", "commanded")
 
 
 class CommandedControlCost(gymnasium.Wrapper):

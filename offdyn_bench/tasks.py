@@ -24,12 +24,14 @@ from typing import Any, Literal
 import gymnasium
 
 from offdyn_bench.effects import (
+    CONTROL_COST_ON,
     ActionBias,
     ActionGain,
     ActionDelay,
     ActionNoise,
     ContactSolimp,
     ContactSolref,
+    ControlCostOn,
     Effect,
     Friction,
     FrictionCone,
@@ -40,7 +42,6 @@ from offdyn_bench.effects import (
     LimbSize,
     effects_from_dicts,
 )
-from offdyn_bench.envs import CONTROL_COST_ON, ControlCostOn
 from offdyn_bench.errors import OffdynError, UnknownNameError
 from offdyn_bench.robotics.adroit import adroit_pairs
 from offdyn_bench.robotics.mazes import antmaze_pairs
@@ -116,7 +117,8 @@ class TaskPair:
             kwargs["task"] = self.task
         # Only a side whose action channel is changed charges differently; a side without such
         # effects keeps the plain kwargs, so a nominal source stays the one every pair shares.
-        if self.control_cost_on != "applied" and any(getattr(e, "channel", None) == "action" for e in self.effects(side)):
+        changes_action = any(getattr(e, "channel", None) == "action" for e in self.effects(side))
+        if self.control_cost_on != "applied" and changes_action:
             kwargs["control_cost_on"] = self.control_cost_on
         return kwargs
 

@@ -9,7 +9,9 @@ from offdyn_bench.effects.channel import (
     ActionNoise,
     ActionSaturation,
     ChannelEffect,
+    CONTROL_COST_ON,
     ChannelEffects,
+    ControlCostOn,
     ObsBias,
     ObsDelay,
     ObsNoise,
@@ -41,7 +43,7 @@ from offdyn_bench.effects.model import (
 from offdyn_bench.effects.layout import MazeLayout  # after model: a model effect of its own module
 
 __all__ = [
-    "EFFECT_KINDS", "Effect", "ModelEffect", "ChannelEffect", "ChannelEffects",
+    "EFFECT_KINDS", "Effect", "ModelEffect", "ChannelEffect", "ChannelEffects", "CONTROL_COST_ON", "ControlCostOn",
     "effects_from_dicts", "effects_to_dicts", "compile_model", "apply_model_effects", "split_effects",
     "Gravity", "Friction", "Mass", "Damping", "FrictionLoss", "Armature", "Gear", "JointRange",
     "JointLimit", "JointLimitSoftness", "BodyOffset", "GeomSize", "LimbSize", "ContactSolref",

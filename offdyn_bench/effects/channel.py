@@ -448,6 +448,13 @@ class _NoiseBlocks:
                 group.refresh()
 
 
+ControlCostOn = Literal["applied", "commanded"]
+"""Which action a robot's control cost is charged on where action-channel effects change it: the
+``applied`` one (what reached the motors; Gymnasium's own reward) or the ``commanded`` one (the
+policy's; ``offdyn_bench.envs.CommandedControlCost``)."""
+CONTROL_COST_ON: tuple[ControlCostOn, ...] = ("applied", "commanded")
+
+
 class ChannelEffects(gymnasium.Wrapper):
     """Apply channel effects to an env's actions and observations.
 
