@@ -92,6 +92,11 @@ def publish_runs_command(
                    "of the sweep not evaluated yet")
         for path in report.written:
             typer.echo(f"  {path}")
+        if report.reproduced:
+            typer.echo(f"{len(report.reproduced)} published file(s) reproduced (the same numbers, policy hashes "
+                       "and versions; only the run's folder, commands or timings differ), kept as published:")
+            for path in report.reproduced:
+                typer.echo(f"  {path}")
         for path in report.compute:
             typer.echo(f"compute per run: {path}")
 

@@ -49,6 +49,10 @@ class PublishReport:
     """Run folders of the sweep without a target record yet (training or never started)."""
     compute: tuple[Path, ...] = ()
     """The ``compute.json`` files updated with the published runs' compute (from the sweep's state)."""
+    reproduced: tuple[Path, ...] = ()
+    """Published records (and curves) the sweep reproduced: other bytes, but only where the run
+    ran (its folder, the commands naming it) and, in a curve, its timings differ. The published
+    bytes are kept."""
 
 
 def check_reference_record(path: Path, record: dict[str, Any], method: str, task: str, label: str,
@@ -157,11 +161,15 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
             plan.append((path, dest / str(record["budget"]) / method / task / label / name, path.read_bytes()))
     if not plan:
         raise SubmissionError(f"{sweep_out}: no finished run to publish ({len(unfinished)} unfinished)")
-    written, unchanged, conflicts = [], [], []
+    written, unchanged, reproduced, conflicts = [], [], [], []
     for source, target, data in plan:
         if target.exists():
-            if target.read_bytes() == data:
+            published = target.read_bytes()
+            if published == data:
                 unchanged.append(target)
+                continue
+            if not replace and _reproduces(published, data, curve=target.name == METRICS_FILE):
+                reproduced.append(target)
                 continue
             if not replace:
                 conflicts.append(f"{target} (from {source})")
@@ -183,7 +191,41 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
         # Each file is whole or absent (atomic renames); publishing again finishes the job.
         raise SubmissionError(f"{dest}: writing failed ({error.strerror or error}: {error.filename}); every "
                               "file written is complete, and publishing again writes the rest") from None
-    return PublishReport(tuple(written), tuple(unchanged), tuple(unfinished), tuple(compute))
+    return PublishReport(tuple(written), tuple(unchanged), tuple(unfinished), tuple(compute), tuple(reproduced))
+
+
+# Where a run ran, not what it measured: a record's own command and its training's (both name the
+# run's folder), and the agent's folder; a curve line's timings.
+_RECORD_LOCATION_FIELDS = ("command", "train_command")
+_CURVE_TIMING_FIELDS = ("wall_time_s", "cpu_time_s")
+
+
+def _reproduces(published: bytes, new: bytes, *, curve: bool) -> bool:
+    """Whether ``new`` is the same measurement as ``published``, run elsewhere: equal once the
+    fields that only say where (and, for a curve, how fast) it ran are left out. Every number,
+    policy hash, seed and version must be the same."""
+    try:
+        if curve:
+            old_lines, new_lines = published.decode().splitlines(), new.decode().splitlines()
+            return len(old_lines) == len(new_lines) and all(
+                _without(json.loads(a), _CURVE_TIMING_FIELDS) == _without(json.loads(b), _CURVE_TIMING_FIELDS)
+                for a, b in zip(old_lines, new_lines))
+        return _record_without_location(json.loads(published)) == _record_without_location(json.loads(new))
+    except (UnicodeDecodeError, ValueError, TypeError):
+        return False
+
+
+def _without(document: Any, fields: Sequence[str]) -> Any:
+    if not isinstance(document, dict):
+        return document
+    return {key: value for key, value in document.items() if key not in fields}
+
+
+def _record_without_location(record: Any) -> Any:
+    record = _without(record, _RECORD_LOCATION_FIELDS)
+    if isinstance(record, dict) and isinstance(record.get("agent"), dict):
+        record = record | {"agent": _without(record["agent"], ("path",))}
+    return record
 
 
 COMPUTE_FILE = "compute.json"

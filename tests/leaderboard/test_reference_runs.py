@@ -262,6 +262,46 @@ def test_a_published_number_changes_only_when_asked(sweep_out, tmp_path):
     assert len(report.written) == 1 and json.loads(report.written[0].read_text()) == record
 
 
+def test_a_run_reproduced_elsewhere_keeps_the_published_bytes(sweep_out, tmp_path):
+    """A retraining in another folder gives the same numbers under other paths (and a curve with
+    other timings): reported as reproduced, the published bytes kept; any number that differs is
+    still a conflict."""
+    run = sweep_out / "runs" / "sac-source" / "hopper-gravity-0.5" / "seed-0"
+    _write_curve(run, range(5000, 100001, 5000))
+    dest = tmp_path / "published"
+    publish_reference_runs(sweep_out, dest)
+    before = _tree(dest)
+    for name in ("evaluation.json", "evaluation-source.json"):
+        record = json.loads((run / name).read_text())
+        moved = "/elsewhere/runs/sac-source/hopper-gravity-0.5/seed-0"
+        record["agent"]["path"] = moved
+        record["command"] = record["command"].replace(str(record["command"]).split()[3], moved)
+        record["train_command"] = f"offdyn-bench train sac-source --seed 0 --out {moved}"
+        (run / name).write_text(json.dumps(record, indent=2))
+    _write_curve(run, range(5000, 100001, 5000))
+    (run / "metrics.jsonl").write_text((run / "metrics.jsonl").read_text().replace('"wall_time_s": 20', '"wall_time_s": 21'))
+    report = publish_reference_runs(sweep_out, dest)
+    published = dest / "lite" / "sac-source" / "hopper-gravity-0.5" / "seed-0"
+    assert sorted(report.reproduced) == sorted(published / name for name in
+                                               ("evaluation.json", "evaluation-source.json", "metrics.jsonl"))
+    assert report.written == () and _tree(dest) == before
+    # The same paths with one return changed, or one policy hash: a new number, refused.
+    for change in (lambda r: r["seeds"][0]["returns"].__setitem__(0, r["seeds"][0]["returns"][0] + 1e-9),
+                   lambda r: r["agent"]["policy_sha256"].__setitem__("0", "0" * 64)):
+        record = json.loads((run / "evaluation.json").read_text())
+        saved = (run / "evaluation.json").read_text()
+        change(record)
+        (run / "evaluation.json").write_text(json.dumps(record))
+        with pytest.raises(SubmissionError, match=r"1 published record\(s\) differ from the sweep's"):
+            publish_reference_runs(sweep_out, dest)
+        (run / "evaluation.json").write_text(saved)
+    assert _tree(dest) == before
+    curve = (run / "metrics.jsonl").read_text()
+    (run / "metrics.jsonl").write_text(curve.replace('"target_return": [50.0]', '"target_return": [50.5]'))
+    with pytest.raises(SubmissionError, match=r"1 published record\(s\) differ.*seed-0/metrics.jsonl"):
+        publish_reference_runs(sweep_out, dest)
+
+
 def _break(sweep_out: Path, change) -> Path:
     path = sweep_out / "runs" / "sac-source" / "hopper-gravity-0.5" / "seed-1" / "evaluation.json"
     record = json.loads(path.read_text())
