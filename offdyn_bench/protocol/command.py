@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 protocol_app = typer.Typer(no_args_is_help=True, add_completion=False,
                            help="The fixed evaluation protocol: show it, record reference scores, score results.")
 reference_app = typer.Typer(no_args_is_help=True, add_completion=False,
-                            help="Record reference scores (random policy, sac-target oracle) with provenance.")
+                            help="Record reference scores (random policy, zero command, sac-target oracle) with provenance.")
 protocol_app.add_typer(reference_app, name="reference")
 
 
@@ -138,22 +138,37 @@ def _describe_reference(kind: str, score: ReferenceScore) -> str:
     return text + (f" [{', '.join(f'{m:.1f}' for m in means)}]" if means else "")
 
 
-@reference_app.command("random")
-def reference_random(task: list[str] = typer.Option([], "--task", help="Task pair (repeatable)."),
-                     core_suite: bool = typer.Option(False, "--core-suite", help="Every core-suite task.")) -> None:
-    """Measure the uniform-random policy on the protocol's episode seeds and record it."""
+def _record_trivial_references(kind: str, task: list[str], core_suite: bool) -> None:
     from offdyn_bench.protocol.definition import CORE_SUITE
-    from offdyn_bench.protocol.references import REFERENCE_FILE, record_random_reference
+    from offdyn_bench.protocol.references import (REFERENCE_FILE, record_random_reference,
+                                                  record_zero_command_reference)
     from offdyn_bench.tasks import get_task
 
+    record = record_random_reference if kind == "random" else record_zero_command_reference
     with exit_on_error():
         tasks = list(CORE_SUITE) if core_suite else [get_task(t).name for t in task]
         if not tasks:
             raise OffdynError("name a task with --task, or pass --core-suite")
         for name in tasks:
-            score = record_random_reference(name)
-            typer.echo(f"{name}: random {score.mean_return:.1f} over {len(score.returns)} episodes")
+            score = record(name)
+            typer.echo(f"{name}: {kind} {score.mean_return:.1f} over {len(score.returns)} episodes")
     typer.echo(f"wrote {REFERENCE_FILE}")
+
+
+@reference_app.command("random")
+def reference_random(task: list[str] = typer.Option([], "--task", help="Task pair (repeatable)."),
+                     core_suite: bool = typer.Option(False, "--core-suite", help="Every core-suite task.")) -> None:
+    """Measure the uniform-random policy on the protocol's episode seeds and record it."""
+    _record_trivial_references("random", task, core_suite)
+
+
+@reference_app.command("zero-command")
+def reference_zero_command(task: list[str] = typer.Option([], "--task", help="Task pair (repeatable)."),
+                           core_suite: bool = typer.Option(False, "--core-suite",
+                                                           help="Every core-suite task.")) -> None:
+    """Measure the zero command (the centre of the action box, every step) on the protocol's
+    episode seeds and record it: the core suite's admission test refuses an oracle below it."""
+    _record_trivial_references("zero-command", task, core_suite)
 
 
 @reference_app.command("oracle")

@@ -130,7 +130,9 @@ policies trained in the shifted simulators, which do not ship yet."""
 ADMISSION_PROBABILITY = 0.9
 """The same-budget test a pair must pass to be in a budget's core suite (PROTOCOL.md §9, decision
 1 for version 1.1): its oracle beats RL on source in the target with P(oracle > RL on source) at
-least this, over at least :data:`MIN_SEEDS` training seeds on each side, both at that budget.
+least this, over at least :data:`MIN_SEEDS` training seeds on each side, both at that budget, and
+the oracle's mean return beats the zero command's (the task's ``zero-command`` reference: an oracle
+that doing nothing beats anchors no normalized score).
 Version 1.0's suite was screened before the test existed (with a shipped policy, §7); the command
 ``offdyn-bench protocol admission`` reports how it fares."""
 

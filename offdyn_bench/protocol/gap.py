@@ -36,6 +36,8 @@ class TaskGap:
     oracle_from: str | None = None
     """``reference file`` (the protocol's recorded oracle) or ``records`` (the ``sac-target`` records
     given beside the method's, for a task the reference file has no oracle for); None: no oracle."""
+    zero_command_return: float | None = None
+    """The task's zero-command reference (the policy that commands nothing); None where none is recorded."""
 
     @property
     def source_return(self) -> float | None:
@@ -82,6 +84,7 @@ class TaskGap:
                 "target_return": self.target_return, "target_seeds": len(self.target_seed_means),
                 "kept": self.kept, "random_return": self.random_return, "oracle_return": self.oracle_return,
                 "oracle_seeds": len(self.oracle_seed_means or ()), "oracle_from": self.oracle_from,
+                "zero_command_return": self.zero_command_return,
                 "normalized_target": self.normalized_target,
                 "p_oracle_better": self.oracle_better_probability}
 
@@ -126,13 +129,14 @@ def measure_gaps(records: Sequence[Mapping[str, Any]], reference_file: str | Non
             raise ProtocolError(f"{method} on {task}: the source side has training seeds {sorted(source)}, the "
                                 f"target side {sorted(target)}; evaluate the same policies on both sides")
         task_references = references.get(task, {})
-        random = task_references.get("random")
+        random, zero = task_references.get("random"), task_references.get("zero-command")
         oracle = task_references.get(f"oracle/{budget}")
         oracle_means, oracle_from = ((oracle.seed_means(), "reference file") if oracle is not None else
                                      (given_oracle[task], "records") if task in given_oracle else (None, None))
         gaps.append(TaskGap(method, task, budget,
                             tuple(source[s] for s in sorted(source)), tuple(target[s] for s in sorted(target)),
-                            random.mean_return if random is not None else None, oracle_means, oracle_from))
+                            random.mean_return if random is not None else None, oracle_means, oracle_from,
+                            zero.mean_return if zero is not None else None))
     return gaps
 
 
@@ -177,8 +181,8 @@ AdmissionVerdict = Literal["passes", "fails", "undecided"]
 @dataclasses.dataclass(frozen=True)
 class Admission:
     """A pair against the core suite's same-budget test (PROTOCOL.md §9, decision 1): does its
-    oracle beat RL on source in the target, with P(oracle > RL on source) >= the threshold over
-    at least ``MIN_SEEDS`` training seeds on each side?"""
+    oracle beat the policy that commands nothing, and RL on source, in the target, the second with
+    P(oracle > RL on source) >= the threshold over at least ``MIN_SEEDS`` training seeds on each side?"""
 
     task: str
     budget: str
@@ -195,8 +199,10 @@ class Admission:
 
 
 def admit(gap: TaskGap) -> Admission:
-    """The test on one measured gap of RL on source. Too few seeds on either side, or no oracle at the
-    gap's budget, is ``undecided`` (never a pass): the test is only as good as its seeds."""
+    """The test on one measured gap of RL on source. Too few seeds on either side, no oracle at the
+    gap's budget, or no zero-command reference, is ``undecided`` (never a pass): the test is only as
+    good as its evidence. An oracle whose mean return does not exceed the zero command's fails
+    whatever RL on source does: on its normalized scale, doing nothing would score above 100."""
     from offdyn_bench.protocol.definition import ADMISSION_PROBABILITY, CORE_SUITE, MIN_SEEDS
 
     if gap.method != RL_ON_SOURCE:
@@ -213,6 +219,16 @@ def admit(gap: TaskGap) -> Admission:
         short = [f"{n} {who} seed{'s' if n != 1 else ''}" for who, n in (("RL-on-source", seeds),
                                                                           ("oracle", oracle_seeds)) if n < MIN_SEEDS]
         verdict, reason = "undecided", f"{' and '.join(short)}; the test needs {MIN_SEEDS} on each side"
+    elif gap.zero_command_return is None:
+        verdict, reason = "undecided", (f"no zero-command reference: record one (offdyn-bench protocol reference "
+                                        f"zero-command --task {gap.task})")
+    elif not gap.oracle_return > gap.zero_command_return:  # type: ignore[operator]  # oracle present here
+        doing_nothing = (None if gap.random_return is None or gap.oracle_return == gap.random_return else
+                         100.0 * (gap.zero_command_return - gap.random_return) / (gap.oracle_return - gap.random_return))
+        verdict, reason = "fails", (f"the oracle ({gap.oracle_return:.1f}) does not beat the zero command "
+                                    f"({gap.zero_command_return:.1f})"
+                                    + (f": doing nothing would score {doing_nothing:.0f} normalized"
+                                       if doing_nothing is not None else ""))
     elif probability is not None and probability >= ADMISSION_PROBABILITY:
         verdict, reason = "passes", f"P = {probability:.2f} >= {ADMISSION_PROBABILITY:.2f}"
     else:

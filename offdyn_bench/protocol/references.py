@@ -3,6 +3,9 @@
 One file, ``assets/reference_scores.json``, holds per task:
 
 * ``random``: a uniform-random policy on the protocol's episode seeds (its own seeded generator);
+* ``zero-command``: the policy that commands nothing (the centre of the action box) on the same
+  episode seeds; no score is normalized by it, but an oracle below it is no oracle (the core suite's
+  admission test, PROTOCOL.md §9);
 * ``oracle``: per budget, ``sac-target`` (SAC trained in the target with that budget's steps),
   evaluated under the protocol like any method, with the policy hashes and the command.
 
@@ -35,7 +38,7 @@ FORMAT = "offdyn-bench/reference-scores"
 RANDOM_RNG_STREAM = 7
 """The random reference's action generator is seeded with (episode seed, this stream)."""
 
-Kind = Literal["random", "oracle"]
+Kind = Literal["random", "oracle", "zero-command"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,7 +50,7 @@ class ReferenceScore:
     """Every episode's return (all seeds' episodes, seed-major, for the oracle)."""
     provenance: Mapping[str, Any]
     budget: str | None = None
-    """The budget of an oracle; None for the random reference."""
+    """The budget of an oracle; None for the random and zero-command references."""
 
     def seed_means(self) -> tuple[float, ...] | None:
         """An oracle's mean return per training seed (its episodes are stored seed-major); None for
@@ -80,13 +83,15 @@ def read_reference_file(path: str | os.PathLike[str] | None = None) -> dict[str,
 
 
 def reference_scores(path: str | os.PathLike[str] | None = None) -> dict[str, dict[str, ReferenceScore]]:
-    """task -> {"random": ..., "oracle/<budget>": ...}; kinds not measured yet are absent."""
+    """task -> {"random": ..., "zero-command": ..., "oracle/<budget>": ...}; kinds not measured yet
+    are absent."""
     out: dict[str, dict[str, ReferenceScore]] = {}
     for task, entry in read_reference_file(path)["tasks"].items():
         scores: dict[str, ReferenceScore] = {}
-        if entry.get("random"):
-            r = entry["random"]
-            scores["random"] = ReferenceScore(task, "random", float(r["mean_return"]), tuple(r["returns"]),
+        for kind, key in (("random", "random"), ("zero-command", "zero_command")):
+            if entry.get(key):
+                r = entry[key]
+                scores[kind] = ReferenceScore(task, kind, float(r["mean_return"]), tuple(r["returns"]),
                                               r["provenance"])
         for budget, o in (entry.get("oracle") or {}).items():
             scores[f"oracle/{budget}"] = ReferenceScore(task, "oracle", float(o["mean_return"]),
@@ -138,43 +143,82 @@ def _write(data: dict[str, Any], path: pathlib.Path) -> None:
     os.replace(partial, path)
 
 
-def record_random_reference(task: str, path: str | os.PathLike[str] | None = None,
-                            episodes: Sequence[int] = EPISODE_SEEDS) -> ReferenceScore:
-    """Measure the uniform-random policy in ``task``'s target on the protocol's episode seeds and
-    record it (replacing an older random entry of that task)."""
+def _target_returns(task: str, episodes: Sequence[int], policy_for: Any) -> tuple[Any, list[float]]:
+    """(the pair, one return per episode seed) of the policy ``policy_for(space, episode_seed)``
+    makes for each episode, in ``task``'s target."""
     import gymnasium
 
-    from offdyn_bench.datasets.policies import UniformRandomPolicy, derived_seed
     from offdyn_bench.tasks import get_task
-    from offdyn_bench.versions import versions
 
     pair = get_task(task)
     env = pair.make("target")
     space = env.action_space
     assert isinstance(space, gymnasium.spaces.Box)
     returns = []
-    for episode_seed in episodes:
-        policy = UniformRandomPolicy(space.low, space.high,
-                                     seed=derived_seed([episode_seed, RANDOM_RNG_STREAM]))
-        observation, _ = env.reset(seed=int(episode_seed))
-        total, done = 0.0, False
-        while not done:
-            observation, reward, terminated, truncated, _ = env.step(policy(observation).astype(space.dtype))
-            total += float(reward)
-            done = terminated or truncated
-        returns.append(total)
-    env.close()
+    try:
+        for episode_seed in episodes:
+            policy = policy_for(space, int(episode_seed))
+            observation, _ = env.reset(seed=int(episode_seed))
+            total, done = 0.0, False
+            while not done:
+                observation, reward, terminated, truncated, _ = env.step(policy(observation).astype(space.dtype))
+                total += float(reward)
+                done = terminated or truncated
+            returns.append(total)
+    finally:
+        env.close()
+    return pair, returns
+
+
+def _record(pair: Any, key: str, kind: Kind, returns: list[float], provenance: dict[str, Any],
+            path: str | os.PathLike[str] | None) -> ReferenceScore:
+    score = ReferenceScore(pair.name, kind, float(np.mean(returns)), tuple(returns), provenance)
+    target = _path(path)
+    data = read_reference_file(target)
+    data["tasks"].setdefault(pair.name, {})[key] = {"mean_return": score.mean_return,
+                                                    "returns": list(returns), "provenance": provenance}
+    _write(data, target)
+    return score
+
+
+def record_random_reference(task: str, path: str | os.PathLike[str] | None = None,
+                            episodes: Sequence[int] = EPISODE_SEEDS) -> ReferenceScore:
+    """Measure the uniform-random policy in ``task``'s target on the protocol's episode seeds and
+    record it (replacing an older random entry of that task)."""
+    from offdyn_bench.datasets.policies import UniformRandomPolicy, derived_seed
+    from offdyn_bench.versions import versions
+
+    pair, returns = _target_returns(task, episodes, lambda space, episode_seed: UniformRandomPolicy(
+        space.low, space.high, seed=derived_seed([episode_seed, RANDOM_RNG_STREAM])))
     provenance = {"policy": "uniform random actions", "env_id": pair.env_id("target"),
                   "task_version": pair.version, "episode_seeds": [int(s) for s in episodes],
                   "rng_seed": f"SeedSequence([episode_seed, {RANDOM_RNG_STREAM}])",
                   "command": f"offdyn-bench protocol reference random --task {pair.name}", "versions": versions()}
-    score = ReferenceScore(pair.name, "random", float(np.mean(returns)), tuple(returns), provenance)
-    target = _path(path)
-    data = read_reference_file(target)
-    data["tasks"].setdefault(pair.name, {})["random"] = {"mean_return": score.mean_return,
-                                                         "returns": list(returns), "provenance": provenance}
-    _write(data, target)
-    return score
+    return _record(pair, "random", "random", returns, provenance, path)
+
+
+def zero_command(space: Any) -> np.ndarray:
+    """The command that asks for nothing: the centre of the action box (0 for the locomotion robots)."""
+    return (np.asarray(space.low, dtype=np.float64) + np.asarray(space.high, dtype=np.float64)) / 2
+
+
+def record_zero_command_reference(task: str, path: str | os.PathLike[str] | None = None,
+                                  episodes: Sequence[int] = EPISODE_SEEDS) -> ReferenceScore:
+    """Measure the zero command (:func:`zero_command`, every step) in ``task``'s target on the
+    protocol's episode seeds and record it (replacing an older zero-command entry of that task).
+    Deterministic: the episode seeds fix every start and any noise of the target."""
+    from offdyn_bench.versions import versions
+
+    def policy_for(space: Any, episode_seed: int) -> Any:
+        command = zero_command(space)
+        return lambda observation: command
+
+    pair, returns = _target_returns(task, episodes, policy_for)
+    provenance = {"policy": "zero command: the centre of the action box at every step", "env_id": pair.env_id("target"),
+                  "task_version": pair.version, "episode_seeds": [int(s) for s in episodes],
+                  "command": f"offdyn-bench protocol reference zero-command --task {pair.name}",
+                  "versions": versions()}
+    return _record(pair, "zero_command", "zero-command", returns, provenance, path)
 
 
 def portable_paths(text: str | None) -> str | None:

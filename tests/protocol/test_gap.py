@@ -29,12 +29,13 @@ def record(method: str, task: str, seed_returns: dict[int, list[float]], *, budg
 @pytest.fixture
 def reference_file(tmp_path):
     """Hopper: random 25, an oracle at lite with seed means 300 and 625 (2 episodes each). Walker:
-    a random reference only."""
+    a random reference (1) and the zero command's (2)."""
     data = {"format": REFERENCE_FORMAT, "format_version": 1, "protocol_version": protocol.PROTOCOL_VERSION,
             "tasks": {HOPPER: {"random": {"mean_return": 25.0, "returns": [25.0], "provenance": {}},
                                "oracle": {"lite": {"mean_return": 462.5, "returns": [250.0, 350.0, 600.0, 650.0],
                                                    "provenance": {"episodes_per_seed": 2}}}},
-                      WALKER: {"random": {"mean_return": 1.0, "returns": [1.0], "provenance": {}}}}}
+                      WALKER: {"random": {"mean_return": 1.0, "returns": [1.0], "provenance": {}},
+                               "zero_command": {"mean_return": 2.0, "returns": [2.0], "provenance": {}}}}}
     path = tmp_path / "reference_scores.json"
     path.write_text(json.dumps(data))
     return path
@@ -164,6 +165,28 @@ def test_admission_never_passes_on_too_few_seeds_or_without_an_oracle(reference_
     assert (few.verdict, few.reason) == ("undecided", "1 RL-on-source seed; the test needs 5 on each side")
     none = _admission([], reference_file=reference_file)
     assert none.verdict == "undecided" and none.reason.startswith("no lite oracle") and none.probability is None
+
+
+def test_an_oracle_below_the_zero_command_fails_whatever_rl_on_source_does(reference_file, tmp_path):
+    """PROTOCOL §9: the Ant standing still earns 994.5 under friction x5, its lite oracle 164.0. An
+    oracle that doing nothing beats is no oracle: on its scale doing nothing scores above 100."""
+    # Walker: random 1, zero command 2. Oracle seeds 1.5-2.5 (mean 2.0) against RL on source 0.1-0.5.
+    low = _admission([1.5, 1.75, 2.0, 2.25, 2.5], rl_on_source={s: [0.1 * (s + 1)] for s in range(5)},
+                     reference_file=reference_file)
+    assert low.probability == 1.0 and low.verdict == "fails"
+    assert low.reason == "the oracle (2.0) does not beat the zero command (2.0): doing nothing would score 100 normalized"
+    above = _admission([1.6, 1.85, 2.1, 2.35, 2.6], rl_on_source={s: [0.1 * (s + 1)] for s in range(5)},
+                       reference_file=reference_file)
+    assert (above.verdict, above.reason) == ("passes", "P = 1.00 >= 0.90")
+    # No zero-command reference: undecided, never a pass, and the command that records one is named.
+    data = json.loads(reference_file.read_text())
+    del data["tasks"][WALKER]["zero_command"]
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps(data))
+    missing = _admission([10.0, 11.0, 12.0, 13.0, 14.0], reference_file=bare)
+    assert (missing.verdict, missing.probability) == ("undecided", 1.0)
+    assert missing.reason == ("no zero-command reference: record one (offdyn-bench protocol reference zero-command "
+                              "--task walker2d-gravity-2.0)")
 
 
 def test_admission_refuses_another_methods_records(tmp_path, reference_file):

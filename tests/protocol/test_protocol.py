@@ -121,6 +121,41 @@ def test_random_reference_is_reproducible(tmp_path):
     assert list(reference_scores(path)) == ["invertedpendulum-gravity-3.0"]
 
 
+def test_zero_command_reference_is_the_zero_command_stepped_and_reproducible(tmp_path):
+    """The zero command in the Ant's friction x5 target: the Ant stands, unactuated, for the whole
+    episode and earns its survival reward (about 1 per step, less contact cost). Recorded twice, the
+    same returns; stepping zeros by hand gives them too."""
+    import gymnasium
+
+    from offdyn_bench.tasks import get_task
+
+    path = tmp_path / "refs.json"
+    first = protocol.record_zero_command_reference("ant-friction-5.0", path, episodes=[5])
+    second = protocol.record_zero_command_reference("ant-friction-5.0", path, episodes=[5])
+    assert first.returns == second.returns and first.kind == "zero-command"
+    env = get_task("ant-friction-5.0").make("target")
+    env.reset(seed=5)
+    total, steps, done = 0.0, 0, False
+    while not done:
+        _, reward, terminated, truncated, _ = env.step(np.zeros(8, dtype=np.float32))
+        total, steps, done = total + float(reward), steps + 1, terminated or truncated
+    assert first.returns == (total,) and steps == 1000 and 0.9 * steps < total <= steps
+    stored = reference_scores(path)["ant-friction-5.0"]
+    assert set(stored) == {"zero-command"} and stored["zero-command"].returns == (total,)
+    assert stored["zero-command"].provenance["command"] == \
+        "offdyn-bench protocol reference zero-command --task ant-friction-5.0"
+    # Beside a random reference of the same task, each keeps its own entry.
+    protocol.record_random_reference("ant-friction-5.0", path, episodes=[5])
+    assert set(reference_scores(path)["ant-friction-5.0"]) == {"random", "zero-command"}
+    assert isinstance(env.action_space, gymnasium.spaces.Box)
+
+
+def test_every_core_suite_pair_has_a_zero_command_reference():
+    for task in CORE_SUITE:
+        zero = reference_scores()[task]["zero-command"]
+        assert len(zero.returns) == EVAL_EPISODES and zero.provenance["episode_seeds"] == list(EPISODE_SEEDS), task
+
+
 def _refs(tmp_path, random=10.0, oracle=110.0, budget="lite"):
     path = tmp_path / "refs.json"
     path.write_text(json.dumps({
