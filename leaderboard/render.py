@@ -49,6 +49,12 @@ def _normalization_notes(board: Board) -> list[str]:
                          "an oracle reference at this budget.")
         for task, reason in sorted(normalization.excluded.items()):
             notes.append(f"Excluded from the `{budget}` normalized scores: `{task}`: {reason}")
+        for task, (zero, zero_normalized) in sorted(normalization.below_zero_command.items()):
+            j_oracle = normalization.references[task][1]
+            notes.append(f"Oracle below the zero command, budget `{budget}`: `{task}`: the policy that commands "
+                         f"nothing earns {zero:.1f}, the oracle {j_oracle:.1f}, so doing nothing scores "
+                         f"{zero_normalized:.0f} normalized; its scores count in this protocol version's "
+                         "aggregates, but measure little (PROTOCOL.md §9, decision 1).")
     return notes
 
 

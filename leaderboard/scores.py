@@ -36,6 +36,9 @@ class Normalization:
     """task -> why it has no normalized score (a missing reference, an oracle below random)."""
     references: Mapping[str, tuple[float, float]]
     """task -> (J_random, J_oracle) of the scored tasks."""
+    below_zero_command: Mapping[str, tuple[float, float]] = dataclasses.field(default_factory=dict)
+    """Scored tasks whose oracle does not beat their zero-command reference (PROTOCOL.md §9): task ->
+    (the zero command's return, its normalized score). Their scores are kept and flagged."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,9 +86,10 @@ class Board:
 
 def normalization_for(budget: str, tasks: Sequence[str], references: Path | None) -> Normalization:
     """The tasks of ``tasks`` that have a random and an oracle reference at ``budget``."""
-    from offdyn_bench.protocol import ProtocolError, reference_pair
+    from offdyn_bench.protocol import ProtocolError, reference_pair, reference_scores
 
-    scored, excluded, pairs = [], {}, {}
+    scored, excluded, pairs, below = [], {}, {}, {}
+    recorded = reference_scores(references)
     for task in tasks:
         try:
             pairs[task] = reference_pair(task, budget, references)
@@ -93,7 +97,11 @@ def normalization_for(budget: str, tasks: Sequence[str], references: Path | None
             excluded[task] = str(error)
             continue
         scored.append(task)
-    return Normalization(budget, tuple(scored), excluded, pairs)
+        zero = recorded.get(task, {}).get("zero-command")
+        j_random, j_oracle = pairs[task]
+        if zero is not None and not j_oracle > zero.mean_return:
+            below[task] = (zero.mean_return, 100.0 * (zero.mean_return - j_random) / (j_oracle - j_random))
+    return Normalization(budget, tuple(scored), excluded, pairs, below)
 
 
 def _entry(submission: Submission, normalization: Normalization, reference_methods: Sequence[str],

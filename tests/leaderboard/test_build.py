@@ -71,6 +71,27 @@ def test_markdown_table_shows_recomputed_scores_and_exclusions(store: Path, refe
     assert "over 2 of 3 core tasks" in markdown
 
 
+def test_a_task_whose_oracle_the_zero_command_beats_is_flagged_not_rescored(store: Path, references_file: Path) -> None:
+    """protocol 1.0's Ant pairs: an oracle below what commanding nothing earns. The board keeps the
+    version's scores (a protocol change would be a new version) and says what they measure."""
+    data = json.loads(references_file.read_text())
+    plain = render_markdown(score_board(load_store(store), references=references_file))
+    # walker2d-gravity-2.0: random 10, oracle 210; the zero command earns 250 there.
+    data["tasks"]["walker2d-gravity-2.0"]["zero_command"] = {"mean_return": 250.0, "returns": [250.0],
+                                                              "provenance": {}}
+    data["tasks"]["hopper-gravity-0.5"]["zero_command"] = {"mean_return": 5.0, "returns": [5.0], "provenance": {}}
+    references_file.write_text(json.dumps(data))
+    board = score_board(load_store(store), references=references_file)
+    assert dict(board.normalizations["lite"].below_zero_command) == {"walker2d-gravity-2.0": (250.0, 120.0)}
+    markdown = render_markdown(board)
+    assert ("Oracle below the zero command, budget `lite`: `walker2d-gravity-2.0`: the policy that commands nothing "
+            "earns 250.0, the oracle 210.0, so doing nothing scores 120 normalized") in markdown
+    assert "`hopper-gravity-0.5`: the policy that commands nothing" not in markdown
+    # Every score is as before: only the note is new.
+    assert [line for line in markdown.splitlines() if line.startswith("| ")] == \
+        [line for line in plain.splitlines() if line.startswith("| ")]
+
+
 def test_html_page_holds_table_breakdown_plots_and_exclusions(store: Path, references_file: Path,
                                                              tmp_path: Path) -> None:
     _, page_path = build_site(store, tmp_path / "site", references=references_file)
