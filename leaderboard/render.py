@@ -49,13 +49,20 @@ def _normalization_notes(board: Board) -> list[str]:
                          "an oracle reference at this budget.")
         for task, reason in sorted(normalization.excluded.items()):
             notes.append(f"Excluded from the `{budget}` normalized scores: `{task}`: {reason}")
-        for task, (zero, zero_normalized) in sorted(normalization.below_zero_command.items()):
-            j_oracle = normalization.references[task][1]
-            notes.append(f"Oracle below the zero command, budget `{budget}`: `{task}`: the policy that commands "
-                         f"nothing earns {zero:.1f}, the oracle {j_oracle:.1f}, so doing nothing scores "
-                         f"{zero_normalized:.0f} normalized; its scores count in this protocol version's "
-                         "aggregates, but measure little (PROTOCOL.md §9, decision 1).")
+        notes.extend(f"Oracle below the zero command, budget `{budget}`: `{task}`: {text}"
+                     for task, text in _below_zero_command(normalization))
     return notes
+
+
+def _below_zero_command(normalization: Normalization) -> list[tuple[str, str]]:
+    """(task, what its flag says) for the scored tasks whose oracle the zero command beats."""
+    out = []
+    for task, (zero, zero_normalized) in sorted(normalization.below_zero_command.items()):
+        j_oracle = normalization.references[task][1]
+        out.append((task, f"the policy that commands nothing earns {zero:.1f}, the oracle {j_oracle:.1f}, so doing "
+                          f"nothing scores {zero_normalized:.0f} normalized; its scores count in this protocol "
+                          "version's aggregates, but measure little (PROTOCOL.md §9, decision 1)."))
+    return out
 
 
 _PROGRESS_TITLE = "Reference runs and the source-target gap"
@@ -387,6 +394,9 @@ def _normalization_html(normalizations: Sequence[Normalization], task_count: int
         for task, reason in sorted(normalization.excluded.items()):
             items.append(f"<li>Excluded at <code>{budget}</code>: <code>{html.escape(task)}</code>: "
                          f"{html.escape(reason)}</li>")
+        for task, text in _below_zero_command(normalization):
+            items.append(f"<li>Oracle below the zero command at <code>{budget}</code>: "
+                         f"<code>{html.escape(task)}</code>: {html.escape(text)}</li>")
     return f'<ul class="note">{"".join(items)}</ul>' if items else ""
 
 

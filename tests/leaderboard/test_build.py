@@ -71,7 +71,8 @@ def test_markdown_table_shows_recomputed_scores_and_exclusions(store: Path, refe
     assert "over 2 of 3 core tasks" in markdown
 
 
-def test_a_task_whose_oracle_the_zero_command_beats_is_flagged_not_rescored(store: Path, references_file: Path) -> None:
+def test_a_task_whose_oracle_the_zero_command_beats_is_flagged_not_rescored(store: Path, references_file: Path,
+                                                                           tmp_path: Path) -> None:
     """protocol 1.0's Ant pairs: an oracle below what commanding nothing earns. The board keeps the
     version's scores (a protocol change would be a new version) and says what they measure."""
     data = json.loads(references_file.read_text())
@@ -87,6 +88,9 @@ def test_a_task_whose_oracle_the_zero_command_beats_is_flagged_not_rescored(stor
     assert ("Oracle below the zero command, budget `lite`: `walker2d-gravity-2.0`: the policy that commands nothing "
             "earns 250.0, the oracle 210.0, so doing nothing scores 120 normalized") in markdown
     assert "`hopper-gravity-0.5`: the policy that commands nothing" not in markdown
+    _, page_path = build_site(store, tmp_path / "site", references=references_file)
+    assert ("Oracle below the zero command at <code>lite</code>: <code>walker2d-gravity-2.0</code>: the policy that "
+            "commands nothing earns 250.0") in page_path.read_text()
     # Every score is as before: only the note is new.
     assert [line for line in markdown.splitlines() if line.startswith("| ")] == \
         [line for line in plain.splitlines() if line.startswith("| ")]
