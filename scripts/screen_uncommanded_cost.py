@@ -23,6 +23,7 @@ import numpy as np
 
 from offdyn_bench.envs import flat_observations
 from offdyn_bench.protocol import EPISODE_SEEDS
+from offdyn_bench.protocol.references import zero_command
 from offdyn_bench.tasks import TASKS, get_task
 
 
@@ -30,8 +31,7 @@ def zero_command_episodes(task: str, side: str, episodes: int) -> dict[str, floa
     """Mean return, length and per-step ``reward_*`` terms of the zero command on ``side``."""
     env = flat_observations(get_task(task).make(side))
     space = env.action_space
-    command = ((np.asarray(space.low, dtype=np.float64) + np.asarray(space.high, dtype=np.float64)) / 2).astype(
-        space.dtype)
+    command = zero_command(space).astype(space.dtype)
     returns, lengths, terms = [], [], {}
     try:
         for e in range(episodes):

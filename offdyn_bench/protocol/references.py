@@ -19,8 +19,8 @@ import json
 import math
 import os
 import pathlib
-from collections.abc import Mapping, Sequence
-from typing import Any, Literal
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -32,6 +32,13 @@ from offdyn_bench.protocol.definition import (
     ProtocolError,
     get_budget,
 )
+
+if TYPE_CHECKING:
+    import gymnasium
+
+    from offdyn_bench.tasks import TaskPair
+
+Policy = Callable[[np.ndarray], np.ndarray]
 
 REFERENCE_FILE = pathlib.Path(__file__).resolve().parents[2] / "assets" / "reference_scores.json"
 FORMAT = "offdyn-bench/reference-scores"
@@ -143,7 +150,8 @@ def _write(data: dict[str, Any], path: pathlib.Path) -> None:
     os.replace(partial, path)
 
 
-def _target_returns(task: str, episodes: Sequence[int], policy_for: Any) -> tuple[Any, list[float]]:
+def _target_returns(task: str, episodes: Sequence[int],
+                    policy_for: Callable[[gymnasium.spaces.Box, int], Policy]) -> tuple[TaskPair, list[float]]:
     """(the pair, one return per episode seed) of the policy ``policy_for(space, episode_seed)``
     makes for each episode, in ``task``'s target."""
     import gymnasium
@@ -170,7 +178,7 @@ def _target_returns(task: str, episodes: Sequence[int], policy_for: Any) -> tupl
     return pair, returns
 
 
-def _record(pair: Any, key: str, kind: Kind, returns: list[float], provenance: dict[str, Any],
+def _record(pair: TaskPair, key: str, kind: Kind, returns: list[float], provenance: dict[str, Any],
             path: str | os.PathLike[str] | None) -> ReferenceScore:
     score = ReferenceScore(pair.name, kind, float(np.mean(returns)), tuple(returns), provenance)
     target = _path(path)
@@ -197,7 +205,7 @@ def record_random_reference(task: str, path: str | os.PathLike[str] | None = Non
     return _record(pair, "random", "random", returns, provenance, path)
 
 
-def zero_command(space: Any) -> np.ndarray:
+def zero_command(space: gymnasium.spaces.Box) -> np.ndarray:
     """The command that asks for nothing: the centre of the action box (0 for the locomotion robots)."""
     return (np.asarray(space.low, dtype=np.float64) + np.asarray(space.high, dtype=np.float64)) / 2
 
@@ -209,7 +217,7 @@ def record_zero_command_reference(task: str, path: str | os.PathLike[str] | None
     Deterministic: the episode seeds fix every start and any noise of the target."""
     from offdyn_bench.versions import versions
 
-    def policy_for(space: Any, episode_seed: int) -> Any:
+    def policy_for(space: gymnasium.spaces.Box, episode_seed: int) -> Policy:
         command = zero_command(space)
         return lambda observation: command
 
