@@ -87,6 +87,7 @@ class Board:
 def normalization_for(budget: str, tasks: Sequence[str], references: Path | None) -> Normalization:
     """The tasks of ``tasks`` that have a random and an oracle reference at ``budget``."""
     from offdyn_bench.protocol import ProtocolError, reference_pair, reference_scores
+    from offdyn_bench.protocol.references import normalize
 
     scored, excluded, pairs, below = [], {}, {}, {}
     recorded = reference_scores(references)
@@ -100,7 +101,7 @@ def normalization_for(budget: str, tasks: Sequence[str], references: Path | None
         zero = recorded.get(task, {}).get("zero-command")
         j_random, j_oracle = pairs[task]
         if zero is not None and not j_oracle > zero.mean_return:
-            below[task] = (zero.mean_return, 100.0 * (zero.mean_return - j_random) / (j_oracle - j_random))
+            below[task] = (zero.mean_return, float(normalize(np.float64(zero.mean_return), j_random, j_oracle)))
     return Normalization(budget, tuple(scored), excluded, pairs, below)
 
 

@@ -204,6 +204,7 @@ def admit(gap: TaskGap) -> Admission:
     good as its evidence. An oracle whose mean return does not exceed the zero command's fails
     whatever RL on source does: on its normalized scale, doing nothing would score above 100."""
     from offdyn_bench.protocol.definition import ADMISSION_PROBABILITY, CORE_SUITE, MIN_SEEDS
+    from offdyn_bench.protocol.references import normalize
 
     if gap.method != RL_ON_SOURCE:
         raise ProtocolError(f"the admission test compares the oracle with RL on source ({RL_ON_SOURCE}); "
@@ -224,7 +225,7 @@ def admit(gap: TaskGap) -> Admission:
                                         f"zero-command --task {gap.task})")
     elif not gap.oracle_return > gap.zero_command_return:  # type: ignore[operator]  # oracle present here
         doing_nothing = (None if gap.random_return is None or gap.oracle_return == gap.random_return else
-                         100.0 * (gap.zero_command_return - gap.random_return) / (gap.oracle_return - gap.random_return))
+                         float(normalize(np.float64(gap.zero_command_return), gap.random_return, gap.oracle_return)))
         verdict, reason = "fails", (f"the oracle ({gap.oracle_return:.1f}) does not beat the zero command "
                                     f"({gap.zero_command_return:.1f})"
                                     + (f": doing nothing would score {doing_nothing:.0f} normalized"

@@ -46,6 +46,8 @@ RANDOM_RNG_STREAM = 7
 """The random reference's action generator is seeded with (episode seed, this stream)."""
 
 Kind = Literal["random", "oracle", "zero-command"]
+_FILE_KEYS: Mapping[str, str] = {"random": "random", "zero-command": "zero_command"}
+"""The reference file's key of each per-task (not per-budget) kind."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,7 +97,7 @@ def reference_scores(path: str | os.PathLike[str] | None = None) -> dict[str, di
     out: dict[str, dict[str, ReferenceScore]] = {}
     for task, entry in read_reference_file(path)["tasks"].items():
         scores: dict[str, ReferenceScore] = {}
-        for kind, key in (("random", "random"), ("zero-command", "zero_command")):
+        for kind, key in _FILE_KEYS.items():
             if entry.get(key):
                 r = entry[key]
                 scores[kind] = ReferenceScore(task, kind, float(r["mean_return"]), tuple(r["returns"]),
@@ -178,13 +180,13 @@ def _target_returns(task: str, episodes: Sequence[int],
     return pair, returns
 
 
-def _record(pair: TaskPair, key: str, kind: Kind, returns: list[float], provenance: dict[str, Any],
+def _record(pair: TaskPair, kind: Kind, returns: list[float], provenance: dict[str, Any],
             path: str | os.PathLike[str] | None) -> ReferenceScore:
     score = ReferenceScore(pair.name, kind, float(np.mean(returns)), tuple(returns), provenance)
     target = _path(path)
     data = read_reference_file(target)
-    data["tasks"].setdefault(pair.name, {})[key] = {"mean_return": score.mean_return,
-                                                    "returns": list(returns), "provenance": provenance}
+    data["tasks"].setdefault(pair.name, {})[_FILE_KEYS[kind]] = {
+        "mean_return": score.mean_return, "returns": list(returns), "provenance": provenance}
     _write(data, target)
     return score
 
@@ -202,7 +204,7 @@ def record_random_reference(task: str, path: str | os.PathLike[str] | None = Non
                   "task_version": pair.version, "episode_seeds": [int(s) for s in episodes],
                   "rng_seed": f"SeedSequence([episode_seed, {RANDOM_RNG_STREAM}])",
                   "command": f"offdyn-bench protocol reference random --task {pair.name}", "versions": versions()}
-    return _record(pair, "random", "random", returns, provenance, path)
+    return _record(pair, "random", returns, provenance, path)
 
 
 def zero_command(space: gymnasium.spaces.Box) -> np.ndarray:
@@ -226,7 +228,7 @@ def record_zero_command_reference(task: str, path: str | os.PathLike[str] | None
                   "task_version": pair.version, "episode_seeds": [int(s) for s in episodes],
                   "command": f"offdyn-bench protocol reference zero-command --task {pair.name}",
                   "versions": versions()}
-    return _record(pair, "zero_command", "zero-command", returns, provenance, path)
+    return _record(pair, "zero-command", returns, provenance, path)
 
 
 def portable_paths(text: str | None) -> str | None:
