@@ -77,8 +77,9 @@ _PROGRESS_NOTE = ("Not submissions: the published runs of the two reference poin
                   "the normalized score and P(oracle > RL on source) use the task's oracle reference, '-' where "
                   "it does not exist yet. Core suite: 'yes' for the protocol version's core suite, 'candidate' for "
                   "a pair outside it whose runs are published to test it. Same-budget test (PROTOCOL.md §9, "
-                  "`offdyn-bench protocol admission`): whether the oracle beats RL on source with P >= 0.9 over 5 "
-                  "seeds each side; 'undecided' while a side has fewer seeds or the task no oracle.")
+                  "`offdyn-bench protocol admission`): whether, over 5 seeds each side, the oracle beats the zero "
+                  "command, beats RL on source with P >= 0.9, and RL on source scores at most 50 normalized; "
+                  "'undecided' while a side has fewer seeds or the task no oracle or reference.")
 
 
 def _progress_cells(row: ReferenceProgress) -> list[tuple[str, str | float | None]]:

@@ -136,6 +136,13 @@ that doing nothing beats anchors no normalized score).
 Version 1.0's suite was screened before the test existed (with a shipped policy, §7); the command
 ``offdyn-bench protocol admission`` reports how it fares."""
 
+ADMISSION_MAX_SOURCE_SCORE = 50.0
+"""The test's third condition (PROTOCOL.md §9, decision 1): RL on source's normalized target score,
+100 x (J - J_random) / (J_oracle - J_random), at most this. The issue's "RL on source well below the
+oracle", read as §7's screening already reads it ("keeps at most about half"), at the same budget:
+RL on source closes at most half of the way from the random policy to the oracle. P alone is not
+it: an oracle that beats every RL-on-source seed by a few points passes P."""
+
 
 def get_track(name: str) -> Track:
     if name not in TRACKS:

@@ -182,7 +182,8 @@ AdmissionVerdict = Literal["passes", "fails", "undecided"]
 class Admission:
     """A pair against the core suite's same-budget test (PROTOCOL.md §9, decision 1): does its
     oracle beat the policy that commands nothing, and RL on source, in the target, the second with
-    P(oracle > RL on source) >= the threshold over at least ``MIN_SEEDS`` training seeds on each side?"""
+    P(oracle > RL on source) >= the threshold over at least ``MIN_SEEDS`` training seeds on each side
+    and RL on source's normalized target score at most the bound (well below the oracle)?"""
 
     task: str
     budget: str
@@ -193,6 +194,8 @@ class Admission:
     reason: str
     in_core_suite: bool
     """Whether the pair is in the current protocol version's core suite."""
+    rl_on_source_score: float | None = None
+    """RL on source's normalized target score against this oracle; None without a random reference or oracle."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -200,10 +203,13 @@ class Admission:
 
 def admit(gap: TaskGap) -> Admission:
     """The test on one measured gap of RL on source. Too few seeds on either side, no oracle at the
-    gap's budget, or no zero-command reference, is ``undecided`` (never a pass): the test is only as
-    good as its evidence. An oracle whose mean return does not exceed the zero command's fails
-    whatever RL on source does: on its normalized scale, doing nothing would score above 100."""
-    from offdyn_bench.protocol.definition import ADMISSION_PROBABILITY, CORE_SUITE, MIN_SEEDS
+    gap's budget, or no zero-command or random reference, is ``undecided`` (never a pass): the test is
+    only as good as its evidence. An oracle whose mean return does not exceed the zero command's fails
+    whatever RL on source does: on its normalized scale, doing nothing would score above 100. RL on
+    source that the oracle beats reliably (P) but only by a little (normalized score above the bound)
+    fails too: it does not clearly fail in the target."""
+    from offdyn_bench.protocol.definition import (ADMISSION_MAX_SOURCE_SCORE, ADMISSION_PROBABILITY, CORE_SUITE,
+                                                  MIN_SEEDS)
     from offdyn_bench.protocol.references import normalize
 
     if gap.method != RL_ON_SOURCE:
@@ -230,11 +236,20 @@ def admit(gap: TaskGap) -> Admission:
                                     f"({gap.zero_command_return:.1f})"
                                     + (f": doing nothing would score {doing_nothing:.0f} normalized"
                                        if doing_nothing is not None else ""))
-    elif probability is not None and probability >= ADMISSION_PROBABILITY:
-        verdict, reason = "passes", f"P = {probability:.2f} >= {ADMISSION_PROBABILITY:.2f}"
-    else:
+    elif probability is None or probability < ADMISSION_PROBABILITY:
         verdict, reason = "fails", f"P = {probability:.2f} < {ADMISSION_PROBABILITY:.2f}"
-    return Admission(gap.task, gap.budget, seeds, oracle_seeds, probability, verdict, reason, gap.task in CORE_SUITE)
+    elif gap.normalized_target is None:
+        verdict, reason = "undecided", (f"no random reference, so no normalized score: record one (offdyn-bench "
+                                        f"protocol reference random --task {gap.task})")
+    elif gap.normalized_target > ADMISSION_MAX_SOURCE_SCORE:
+        verdict, reason = "fails", (f"RL on source scores {gap.normalized_target:.1f} normalized, above "
+                                    f"{ADMISSION_MAX_SOURCE_SCORE:.0f}: not well below the oracle "
+                                    f"(P = {probability:.2f})")
+    else:
+        verdict, reason = "passes", (f"P = {probability:.2f} >= {ADMISSION_PROBABILITY:.2f}; RL on source scores "
+                                     f"{gap.normalized_target:.1f} <= {ADMISSION_MAX_SOURCE_SCORE:.0f} normalized")
+    return Admission(gap.task, gap.budget, seeds, oracle_seeds, probability, verdict, reason,
+                     gap.task in CORE_SUITE, gap.normalized_target)
 
 
 def admissions_markdown(admissions: Sequence[Admission]) -> str:
@@ -242,12 +257,59 @@ def admissions_markdown(admissions: Sequence[Admission]) -> str:
 
     budget = admissions[0].budget if admissions else "-"
     lines = [f"| task | in core suite {PROTOCOL_VERSION} | RL-on-source seeds | oracle/{budget} seeds | "
-             "P(oracle > RL on source) | verdict |",
-             "|---|---|---:|---:|---:|---|"]
+             "P(oracle > RL on source) | RL on source, normalized | verdict |",
+             "|---|---|---:|---:|---:|---:|---|"]
     for one in admissions:
         lines.append(f"| {one.task} | {'yes' if one.in_core_suite else 'no'} | {one.rl_on_source_seeds} | "
-                     f"{one.oracle_seeds} | {_number(one.probability, '{:.2f}')} | {one.verdict}: {one.reason} |")
+                     f"{one.oracle_seeds} | {_number(one.probability, '{:.2f}')} | "
+                     f"{_number(one.rl_on_source_score)} | {one.verdict}: {one.reason} |")
     core = [one for one in admissions if one.in_core_suite]
     counts = ", ".join(f"{sum(one.verdict == v for one in core)} {v}" for v in ("passes", "fails", "undecided"))
-    lines += ["", f"Core-suite pairs given: {len(core)} ({counts}). The test: PROTOCOL.md §9, decision 1."]
+    coverage = admission_coverage(admissions)
+    lines += ["", f"Core-suite pairs given: {len(core)} ({counts}). The test: PROTOCOL.md §9, decision 1.",
+              coverage.sentence()]
     return "\n".join(lines) + "\n"
+
+
+@dataclasses.dataclass(frozen=True)
+class Coverage:
+    """Which of the robots and shift families the core suite must cover have a pair that passes."""
+
+    passing: tuple[str, ...]
+    robots: Mapping[str, tuple[str, ...]]
+    """Robot -> its passing pairs (empty: none passes), for every robot of the current core suite."""
+    shifts: Mapping[str, tuple[str, ...]]
+    """Shift family -> its passing pairs, for every shift family of the current core suite."""
+
+    @property
+    def uncovered(self) -> tuple[str, ...]:
+        return tuple([r for r, pairs in self.robots.items() if not pairs]
+                     + [s for s, pairs in self.shifts.items() if not pairs])
+
+    def sentence(self) -> str:
+        def listed(groups: Mapping[str, tuple[str, ...]], covered: bool) -> str:
+            names = [name for name, pairs in groups.items() if bool(pairs) == covered]
+            return ", ".join(names) if names else "none"
+
+        return (f"Passing pairs: {len(self.passing)}; robots covered: {listed(self.robots, True)}, without a "
+                f"passing pair: {listed(self.robots, False)}; shift families covered: {listed(self.shifts, True)}, "
+                f"without one: {listed(self.shifts, False)}.")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"passing": list(self.passing), "robots": {k: list(v) for k, v in self.robots.items()},
+                "shifts": {k: list(v) for k, v in self.shifts.items()}, "uncovered": list(self.uncovered)}
+
+
+def admission_coverage(admissions: Sequence[Admission]) -> Coverage:
+    """What a core suite made of the passing pairs would cover: every robot and shift family of the
+    current core suite (what the suite promises), each with the pairs given that pass for it."""
+    from offdyn_bench.protocol.definition import CORE_SUITE
+    from offdyn_bench.tasks import get_task
+
+    passing = tuple(one.task for one in admissions if one.verdict == "passes")
+    core = [get_task(task) for task in CORE_SUITE]
+    robots = {robot: tuple(t for t in passing if get_task(t).robot == robot)
+              for robot in sorted({pair.robot for pair in core})}
+    shifts = {shift: tuple(t for t in passing if get_task(t).shift == shift)
+              for shift in sorted({pair.shift for pair in core})}
+    return Coverage(passing, robots, shifts)

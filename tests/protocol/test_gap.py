@@ -149,7 +149,10 @@ def _admission(oracle_means, rl_on_source=FIVE_RL_ON_SOURCE, reference_file=None
 def test_admission_is_the_mann_whitney_test_at_its_threshold(reference_file):
     # Oracle 3 against 1..5: beats 2, ties 1 (1/2); 6..9 beat all five: (2.5 + 20) / 25 = 0.90 exactly.
     passes = _admission([3.0, 6.0, 7.0, 8.0, 9.0], reference_file=reference_file)
-    assert (passes.verdict, passes.probability, passes.reason) == ("passes", 0.9, "P = 0.90 >= 0.90")
+    # RL on source's mean 3 against random 1 and the oracle's mean 6.6: 100 x 2 / 5.6 = 35.7.
+    assert (passes.verdict, passes.probability, passes.reason) == (
+        "passes", 0.9, "P = 0.90 >= 0.90; RL on source scores 35.7 <= 50 normalized")
+    assert passes.rl_on_source_score == pytest.approx(200 / 5.6)
     assert (passes.rl_on_source_seeds, passes.oracle_seeds, passes.in_core_suite) == (5, 5, True)
     # 2.5 beats 2 and ties none: 22 / 25 = 0.88, one half-win short.
     fails = _admission([2.5, 6.0, 7.0, 8.0, 9.0], reference_file=reference_file)
@@ -177,7 +180,7 @@ def test_an_oracle_below_the_zero_command_fails_whatever_rl_on_source_does(refer
     assert low.reason == "the oracle (2.0) does not beat the zero command (2.0): doing nothing would score 100 normalized"
     above = _admission([1.6, 1.85, 2.1, 2.35, 2.6], rl_on_source={s: [0.1 * (s + 1)] for s in range(5)},
                        reference_file=reference_file)
-    assert (above.verdict, above.reason) == ("passes", "P = 1.00 >= 0.90")
+    assert (above.verdict, above.reason) == ("passes", "P = 1.00 >= 0.90; RL on source scores -63.6 <= 50 normalized")
     # No zero-command reference: undecided, never a pass, and the command that records one is named.
     data = json.loads(reference_file.read_text())
     del data["tasks"][WALKER]["zero_command"]
@@ -187,6 +190,45 @@ def test_an_oracle_below_the_zero_command_fails_whatever_rl_on_source_does(refer
     assert (missing.verdict, missing.probability) == ("undecided", 1.0)
     assert missing.reason == ("no zero-command reference: record one (offdyn-bench protocol reference zero-command "
                               "--task walker2d-gravity-2.0)")
+
+
+def test_rl_on_source_that_the_oracle_beats_by_a_little_is_no_clear_failure(reference_file, tmp_path):
+    """PROTOCOL §9, decision 1's third condition: the oracle beats every RL-on-source seed (P = 1) but
+    RL on source closes more than half of the way from random to the oracle: not well below it."""
+    twos = {s: [2.0] for s in range(5)}  # RL on source: 2 on every seed; random 1.
+    # Oracle 3: 100 x (2 - 1) / (3 - 1) = 50, the bound itself, passes.
+    at_bound = _admission([3.0] * 5, rl_on_source=twos, reference_file=reference_file)
+    assert (at_bound.verdict, at_bound.probability, at_bound.rl_on_source_score) == ("passes", 1.0, 50.0)
+    # Oracle 2.9: 1 / 1.9 = 52.6, above the bound, fails whatever P says.
+    above = _admission([2.9] * 5, rl_on_source=twos, reference_file=reference_file)
+    assert (above.verdict, above.probability) == ("fails", 1.0)
+    assert above.reason == "RL on source scores 52.6 normalized, above 50: not well below the oracle (P = 1.00)"
+    # Without a random reference there is no normalized score: undecided, never a pass.
+    data = json.loads(reference_file.read_text())
+    del data["tasks"][WALKER]["random"]
+    bare = tmp_path / "no-random.json"
+    bare.write_text(json.dumps(data))
+    unscored = _admission([3.0] * 5, rl_on_source=twos, reference_file=bare)
+    assert (unscored.verdict, unscored.rl_on_source_score) == ("undecided", None)
+    assert unscored.reason == ("no random reference, so no normalized score: record one (offdyn-bench protocol "
+                               "reference random --task walker2d-gravity-2.0)")
+
+
+def test_coverage_lists_every_robot_and_shift_of_the_core_suite_with_its_passing_pairs(reference_file):
+    from offdyn_bench.protocol.gap import Admission, admission_coverage
+
+    def one(task, verdict):
+        return Admission(task, "lite", 5, 5, 1.0, verdict, "", False, 10.0)
+
+    coverage = admission_coverage([one("halfcheetah-gravity-5.0", "passes"), one("walker2d-gravity-2.0", "fails"),
+                                   one("hopper-morph-thigh-hard", "passes"), one("ant-friction-5.0", "undecided")])
+    assert coverage.passing == ("halfcheetah-gravity-5.0", "hopper-morph-thigh-hard")
+    assert dict(coverage.robots) == {"Ant": (), "HalfCheetah": ("halfcheetah-gravity-5.0",),
+                                     "Hopper": ("hopper-morph-thigh-hard",), "Walker2d": ()}
+    assert dict(coverage.shifts) == {"friction": (), "gravity": ("halfcheetah-gravity-5.0",), "joint-noise": (),
+                                     "kinematic": (), "morph": ("hopper-morph-thigh-hard",)}
+    assert coverage.uncovered == ("Ant", "Walker2d", "friction", "joint-noise", "kinematic")
+    assert coverage.to_dict()["uncovered"] == list(coverage.uncovered)
 
 
 def test_admission_refuses_another_methods_records(tmp_path, reference_file):
@@ -209,9 +251,13 @@ def test_admission_command_reports_each_task_and_the_core_suite_count(tmp_path, 
     runner = CliRunner()
     result = runner.invoke(app, ["protocol", "admission", *paths, "--reference-file", str(reference_file)])
     assert result.exit_code == 0, result.output
-    assert "| walker2d-gravity-2.0 | yes | 5 | 5 | 0.90 | passes: P = 0.90 >= 0.90 |" in result.output
-    assert "| hopper-gravity-5.0 | no | 5 | 0 | - | undecided: no lite oracle" in result.output
+    assert ("| walker2d-gravity-2.0 | yes | 5 | 5 | 0.90 | 35.7 | passes: P = 0.90 >= 0.90; RL on source scores "
+            "35.7 <= 50 normalized |") in result.output
+    assert "| hopper-gravity-5.0 | no | 5 | 0 | - | - | undecided: no lite oracle" in result.output
     assert "Core-suite pairs given: 1 (1 passes, 0 fails, 0 undecided)." in result.output
+    # What a suite of the passing pairs would cover, against the robots and shifts of the current one.
+    assert ("Passing pairs: 1; robots covered: Walker2d, without a passing pair: Ant, HalfCheetah, Hopper; shift "
+            "families covered: gravity, without one: friction, joint-noise, kinematic, morph.") in result.output
     rows = json.loads(runner.invoke(app, ["protocol", "admission", *paths, "--json", "--reference-file",
                                           str(reference_file)]).output)
     assert [(r["task"], r["verdict"]) for r in rows] == [("hopper-gravity-5.0", "undecided"),
