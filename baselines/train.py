@@ -10,8 +10,11 @@
 * ``checkpoints/step_<N>/`` -- safetensors state (networks, optimizers, buffers, random streams)
   with the sha256 of its files; the two newest are kept (:mod:`baselines.checkpoint`);
 * ``result.json`` -- the final per-seed, per-episode target returns, versions, task and dataset(s),
-  ``warnings`` (e.g. a budget too short for the method to make any update) and ``compute``: the
-  training's wall and CPU seconds over all its attempts (:class:`baselines.run_folder.TrainingCompute`);
+  ``warnings`` (e.g. a budget too short for the method to make any update), ``compute``: the
+  training's wall and CPU seconds over all its attempts (:class:`baselines.run_folder.TrainingCompute`),
+  and ``machines``: the distinct machines its attempts ran on (:func:`offdyn_bench.versions.machine`;
+  a ``null`` entry stands for attempts before checkpoints recorded them), since the same seed trains
+  another policy on another CPU model;
 * ``.lock`` -- locked while a process trains in the folder, so a second one is refused.
 
 Every argument and config value is checked before anything is written, so bad input leaves no
@@ -62,7 +65,7 @@ from offdyn_bench.errors import OffdynError
 from offdyn_bench.protocol.definition import ProtocolError
 from offdyn_bench.protocol.training import resolve_run
 from offdyn_bench.tasks import TaskPair, get_task
-from offdyn_bench.versions import versions
+from offdyn_bench.versions import machine, versions
 
 EVAL_SEED = 1_000_000
 """Evaluation episode e is reset with seed EVAL_SEED + e, for every method and training seed."""
@@ -193,7 +196,7 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
                   "mean_return": float(final_returns.mean()), "versions": versions(),
                   "config": settings["config"], "warnings": warnings, "track": plan.track, "budget": plan.budget,
                   "target_steps_per_seed": loop.target_steps_taken(steps), "device": device,
-                  "compute": loop.clock.now().to_dict()}
+                  "compute": loop.clock.now().to_dict(), "machines": loop.machines}
         if source_provenance is not None:
             result["source_dataset"] = source_provenance
         write_json_atomic(out / RESULT_FILE, result)
@@ -385,6 +388,9 @@ class _Loop:
             if envs is not None:
                 envs.reset_all()
         self.clock = _Clock()
+        self.machines: list[dict[str, Any] | None] = [machine()]
+        """The distinct machines of this training's attempts, in order (None: attempts before
+        checkpoints recorded them)."""
 
     def step(self, step: int) -> dict[str, torch.Tensor]:
         method = self.method
@@ -446,7 +452,7 @@ class _Loop:
         trainer = {"step": step,
                    "train_episodes": self.train_envs.episodes if self.train_envs else None,
                    "target_episodes": self.target_envs.episodes if self.target_envs else None,
-                   "compute": self.clock.now().to_dict()}
+                   "compute": self.clock.now().to_dict(), "machines": self.machines}
         save_checkpoint(self.out, step, self.method.state_dict(), trainer)
 
     def restore(self) -> tuple[int, list[str]]:
@@ -500,6 +506,10 @@ class _Loop:
                 envs.episodes = list(episodes[key])
                 envs.reset_all()
         self.clock.resumed(TrainingCompute.parse(trainer.get("compute")))
+        earlier = trainer.get("machines")
+        earlier = ([m if isinstance(m, dict) else None for m in earlier] if isinstance(earlier, list) else [None])
+        current = machine()
+        self.machines = earlier + ([current] if current not in earlier else [])
         return checkpoint_step(path)
 
 

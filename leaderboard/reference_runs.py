@@ -195,8 +195,9 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
 
 
 # Where a run ran, not what it measured: a record's own command and its training's (both name the
-# run's folder), and the agent's folder; a curve line's timings.
-_RECORD_LOCATION_FIELDS = ("command", "train_command")
+# run's folder), the machines of its evaluation and training, and the agent's folder; a curve
+# line's timings.
+_RECORD_LOCATION_FIELDS = ("command", "train_command", "machine", "training_machines")
 _CURVE_TIMING_FIELDS = ("wall_time_s", "cpu_time_s")
 
 

@@ -90,6 +90,9 @@ class LoadedAgents:
     train_command: str | None = None
     source_dataset: dict[str, Any] | None = None
     """Provenance of the source dataset of an offline-source run (None for every other run)."""
+    training_machines: list[Any] | None = None
+    """The machines a run's training ran on (its ``result.json``); None for a user's agent and for
+    runs trained before results recorded them."""
 
 
 def _sha256_arrays(arrays: Sequence[np.ndarray]) -> str:
@@ -174,8 +177,10 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
                      + f" --out {run_dir}")
     dataset = result.get("dataset") or config.get("dataset_provenance")
     source_dataset = result.get("source_dataset") or config.get("source_dataset_provenance")
+    machines = result.get("machines")
     return LoadedAgents(agents=agents, method=config["algo"], task=pair.name, steps=int(config["steps"]),
                         dataset=dataset, train_command=train_command, source_dataset=source_dataset,
+                        training_machines=machines if isinstance(machines, list) else None,
                         description={"kind": "run", "path": str(run_dir), "checkpoint": checkpoint.name,
                                      "policy_sha256": hashes,
                                      # The command above omits --set overrides: config.json holds
@@ -334,7 +339,7 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
     from tqdm import tqdm
 
     from offdyn_bench.tasks import get_task
-    from offdyn_bench.versions import versions
+    from offdyn_bench.versions import machine, versions
 
     if not 1 <= episodes <= len(EPISODE_SEEDS) * 50:
         raise EvaluationError(f"episodes={episodes}; expected an integer in [1, {len(EPISODE_SEEDS) * 50}]")
@@ -403,6 +408,8 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
         "episode_seeds": episode_seeds, "seeds": per_seed,
         "protocol_conformant": not notes, "notes": notes,
         "versions": versions(),
+        # Where the numbers were computed: another CPU model can train, and act, differently (PROTOCOL §8).
+        "machine": machine(), "training_machines": loaded.training_machines,
         "command": "offdyn-bench evaluate " + shlex.join(_command_args(agent, task, track, budget, episodes, side)),
     }
     if loaded.source_dataset is not None:  # offline-source runs only: other records keep their keys

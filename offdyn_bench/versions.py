@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import platform
 from importlib import metadata
+from typing import Any
 
 __version__ = "0.1.0"
 
@@ -31,4 +33,53 @@ def versions() -> dict[str, str | None]:
         "torch": _installed("torch"),
         "numpy": _installed("numpy"),
         "python": platform.python_version(),
+    }
+
+
+# Instruction sets whose presence changes which kernels MKL, OpenBLAS, oneDNN and ATen pick, and
+# with them the last bits of a float: the same seed trains another policy on another CPU model
+# (PROTOCOL.md §8). Recorded, never used to decide anything.
+_ISA_FLAGS = ("sse4_2", "avx", "fma", "avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile")
+# Environment variables that pin or change those kernels.
+NUMERICS_ENVIRONMENT = ("MKL_CBWR", "MKL_ENABLE_INSTRUCTIONS", "MKL_DEBUG_CPU_TYPE", "ATEN_CPU_CAPABILITY",
+                        "DNNL_MAX_CPU_ISA", "ONEDNN_MAX_CPU_ISA", "OPENBLAS_CORETYPE")
+
+
+def _cpu_info() -> tuple[str | None, list[str]]:
+    """The CPU's model name and its instruction sets among ``_ISA_FLAGS`` (Linux; elsewhere what
+    ``platform`` says and no flags)."""
+    try:
+        text = open("/proc/cpuinfo", encoding="utf-8", errors="replace").read()
+    except OSError:
+        return platform.processor() or None, []
+    model, flags = None, set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "model name" and model is None:
+            model = value.strip()
+        elif key.strip() == "flags" and not flags:
+            flags = set(value.split())
+    return model or platform.processor() or None, [flag for flag in _ISA_FLAGS if flag in flags]
+
+
+def machine() -> dict[str, Any]:
+    """Where a number was computed, as far as it changes floating-point results: the CPU model, its
+    vector instruction sets, the kernels torch and numpy dispatch to, torch's thread count, and the
+    environment variables that pin them. Records carry it beside :func:`versions`."""
+    import numpy
+    import torch
+
+    cpu, isa = _cpu_info()
+    try:
+        simd = numpy.show_config(mode="dicts")["SIMD Extensions"]["found"]
+    except (TypeError, KeyError, AttributeError):
+        simd = None
+    return {
+        "cpu": cpu,
+        "architecture": platform.machine(),
+        "isa": isa,
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "torch_threads": torch.get_num_threads(),
+        "numpy_simd": list(simd) if simd is not None else None,
+        "numerics_environment": {name: os.environ[name] for name in NUMERICS_ENVIRONMENT if name in os.environ},
     }

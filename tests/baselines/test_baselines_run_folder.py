@@ -157,6 +157,47 @@ def test_a_checkpoint_from_before_compute_was_recorded_resumes_and_says_the_time
     assert resumed["compute"]["attempts"] == 2 and resumed["compute"]["complete"] is False
 
 
+def test_a_run_records_the_machines_its_attempts_ran_on(whole_run, cut_run, monkeypatch):
+    """PROTOCOL §8: the same seed trains another policy on another CPU model, so a result says where
+    it was trained: one entry per distinct machine, in order, carried across resumes by checkpoints."""
+    import baselines.train as training
+    from offdyn_bench.versions import machine
+
+    here = machine()
+    assert whole_run[0]["machines"] == [here]
+    assert here["isa"] == [flag for flag in here["isa"] if flag in ("sse4_2", "avx", "fma", "avx2", "avx512f",
+                                                                    "avx512_vnni", "avx512_bf16", "amx_tile")]
+    assert _trainer(checkpoints(cut_run)[-1])["machines"] == [here]
+    # The same run resumed on "another" machine: both are listed, and the numbers are the run's.
+    elsewhere = here | {"cpu": "another CPU model", "torch_cpu_capability": "AVX2"}
+    monkeypatch.setattr(training, "machine", lambda: elsewhere)
+    resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
+    assert resumed["machines"] == [here, elsewhere]
+    assert resumed["returns"] == whole_run[0]["returns"]
+
+
+def test_a_checkpoint_from_before_machines_were_recorded_says_the_earlier_ones_are_unknown(cut_run):
+    from offdyn_bench.versions import machine
+
+    for checkpoint in checkpoints(cut_run):
+        trainer = _trainer(checkpoint)
+        del trainer["machines"]
+        (checkpoint / TRAINER_FILE).write_text(json.dumps(trainer))
+        (checkpoint / CHECKSUMS_FILE).unlink()
+    assert train("sac-source", PENDULUM, out=cut_run, **RUN)["machines"] == [None, machine()]
+
+
+def test_the_numerics_environment_is_recorded_where_set(monkeypatch):
+    from offdyn_bench.versions import machine
+
+    monkeypatch.delenv("MKL_CBWR", raising=False)
+    assert "MKL_CBWR" not in machine()["numerics_environment"]
+    monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")
+    monkeypatch.setenv("SOMETHING_ELSE", "1")
+    environment = machine()["numerics_environment"]
+    assert environment["MKL_CBWR"] == "COMPATIBLE" and "SOMETHING_ELSE" not in environment
+
+
 @pytest.mark.parametrize("stored", [{"wall_time_s": float("nan"), "cpu_time_s": 1.0, "attempts": 1, "complete": True},
                                     {"wall_time_s": -1.0, "cpu_time_s": 1.0, "attempts": 1, "complete": True},
                                     {"wall_time_s": 1.0, "cpu_time_s": 1.0, "attempts": 0, "complete": True},

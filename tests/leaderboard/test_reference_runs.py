@@ -277,6 +277,9 @@ def test_a_run_reproduced_elsewhere_keeps_the_published_bytes(sweep_out, tmp_pat
         record["agent"]["path"] = moved
         record["command"] = record["command"].replace(str(record["command"]).split()[3], moved)
         record["train_command"] = f"offdyn-bench train sac-source --seed 0 --out {moved}"
+        # Another machine, too: where it ran, not what it measured (PROTOCOL §8).
+        record["machine"] = {"cpu": "another CPU", "isa": ["avx2"], "torch_cpu_capability": "AVX2"}
+        record["training_machines"] = [None, {"cpu": "another CPU"}]
         (run / name).write_text(json.dumps(record, indent=2))
     _write_curve(run, range(5000, 100001, 5000))
     (run / "metrics.jsonl").write_text((run / "metrics.jsonl").read_text().replace('"wall_time_s": 20', '"wall_time_s": 21'))

@@ -74,6 +74,10 @@ def test_a_run_folder_is_evaluated_per_training_seed(finished_run):
     assert record["budget"] is None and not record["protocol_conformant"]
     assert any("not at a protocol budget" in n for n in record["notes"])
     assert set(record["agent"]["policy_sha256"]) == {"3", "4"}
+    # Where the evaluation and the training ran (PROTOCOL §8: another CPU model, another policy).
+    from offdyn_bench.versions import machine
+
+    assert record["machine"] == machine() and record["training_machines"] == [machine()]
     assert read_evaluation(finished_run / "evaluation.json") == json.loads(json.dumps(record))
     # Deterministic: the same run gives the same returns.
     assert evaluate(finished_run, progress=False, out=finished_run / "again.json")["seeds"] == record["seeds"]
@@ -147,6 +151,7 @@ def test_a_user_agent_from_a_factory(agent_module):
     record = evaluate(f"{agent_module}:make", PENDULUM, seeds=[0, 1], episodes=3, progress=False, method="zero")
     assert [s["seed"] for s in record["seeds"]] == [0, 1]
     assert record["method"] == "zero" and record["agent"]["kind"] == "factory"
+    assert record["training_machines"] is None and record["machine"]["cpu"]  # no training of ours to describe
     assert sys.modules[agent_module].Zero.resets == 6  # reset() before every episode
     plain = evaluate(f"{agent_module}:make_function", PENDULUM, episodes=2, progress=False)
     assert len(plain["seeds"]) == 1 and len(plain["seeds"][0]["returns"]) == 2
