@@ -58,6 +58,9 @@ def merge_evaluations(records: Sequence[dict[str, Any]], sources: Sequence[Path]
         "notes": notes,
         "command": "; ".join(str(record.get("command")) for record in records),
         "merged_from": [str(source) for source in sources],
+        # Per run, in the order above: where it was evaluated and trained (PROTOCOL §8).
+        "machines": [{"evaluation": record.get("machine"), "training": record.get("training_machines")}
+                     for record in records],
     }
     return merged
 

@@ -211,6 +211,10 @@ def test_merged_evaluation_holds_each_runs_returns_and_curves(finished_sweep):
         assert merged[field] == records[0][field]
     assert merged["protocol_conformant"] is False and merged["notes"] == records[0]["notes"]
     assert merged["merged_from"] == [str(run.folder / "evaluation.json") for run in runs]
+    assert merged["machines"] == [{"evaluation": r["machine"], "training": r["training_machines"]} for r in records]
+    # One machine ran it all; the trainings ran on one torch thread (the sweep's --threads 1).
+    assert all([t["cpu"] for t in m["training"]] == [m["evaluation"]["cpu"]] for m in merged["machines"])
+    assert all([t["torch_threads"] for t in m["training"]] == [1] for m in merged["machines"])
     curves = [[json.loads(line) for line in (run.folder / "metrics.jsonl").read_text().splitlines()] for run in runs]
     merged_curve = [json.loads(line) for line in
                     (out / SUBMISSION_DIR / "sac-source" / TASK / "metrics.jsonl").read_text().splitlines()]
