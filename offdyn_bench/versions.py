@@ -49,7 +49,8 @@ def _cpu_info() -> tuple[str | None, list[str]]:
     """The CPU's model name and its instruction sets among ``_ISA_FLAGS`` (Linux; elsewhere what
     ``platform`` says and no flags)."""
     try:
-        text = open("/proc/cpuinfo", encoding="utf-8", errors="replace").read()
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as cpuinfo:
+            text = cpuinfo.read()
     except OSError:
         return platform.processor() or None, []
     model, flags = None, set()

@@ -208,8 +208,12 @@ def admit(gap: TaskGap) -> Admission:
     whatever RL on source does: on its normalized scale, doing nothing would score above 100. RL on
     source that the oracle beats reliably (P) but only by a little (normalized score above the bound)
     fails too: it does not clearly fail in the target."""
-    from offdyn_bench.protocol.definition import (ADMISSION_MAX_SOURCE_SCORE, ADMISSION_PROBABILITY, CORE_SUITE,
-                                                  MIN_SEEDS)
+    from offdyn_bench.protocol.definition import (
+        ADMISSION_MAX_SOURCE_SCORE,
+        ADMISSION_PROBABILITY,
+        CORE_SUITE,
+        MIN_SEEDS,
+    )
     from offdyn_bench.protocol.references import normalize
 
     if gap.method != RL_ON_SOURCE:
@@ -237,7 +241,7 @@ def admit(gap: TaskGap) -> Admission:
                                     + (f": doing nothing would score {doing_nothing:.0f} normalized"
                                        if doing_nothing is not None else ""))
     elif probability is None or probability < ADMISSION_PROBABILITY:
-        verdict, reason = "fails", f"P = {probability:.2f} < {ADMISSION_PROBABILITY:.2f}"
+        verdict, reason = "fails", f"P = {_number(probability, '{:.2f}')} < {ADMISSION_PROBABILITY:.2f}"
     elif gap.normalized_target is None:
         verdict, reason = "undecided", (f"no random reference, so no normalized score: record one (offdyn-bench "
                                         f"protocol reference random --task {gap.task})")
