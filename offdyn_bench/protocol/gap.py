@@ -201,10 +201,27 @@ class Admission:
         return dataclasses.asdict(self)
 
 
+def best_reachable_probability(probability: float, oracle_seeds: int, rl_on_source_seeds: int,
+                               seeds_needed: int) -> float:
+    """The largest P(oracle > RL on source) that completing both sides to ``seeds_needed`` seeds can
+    give, from ``probability`` over the seeds given: every missing oracle seed beats every
+    RL-on-source seed and every missing RL-on-source seed loses to every oracle seed. Below the
+    admission threshold, the pair fails whatever the missing seeds score."""
+    if oracle_seeds < 1 or rl_on_source_seeds < 1:
+        raise ProtocolError(f"a probability needs a seed on each side; got {oracle_seeds} oracle and "
+                            f"{rl_on_source_seeds} RL-on-source seed(s)")
+    missing_oracle = max(0, seeds_needed - oracle_seeds)
+    missing_source = max(0, seeds_needed - rl_on_source_seeds)
+    wins = (probability * oracle_seeds * rl_on_source_seeds
+            + missing_oracle * (rl_on_source_seeds + missing_source) + oracle_seeds * missing_source)
+    return wins / ((oracle_seeds + missing_oracle) * (rl_on_source_seeds + missing_source))
+
+
 def admit(gap: TaskGap) -> Admission:
     """The test on one measured gap of RL on source. Too few seeds on either side, no oracle at the
     gap's budget, or no zero-command or random reference, is ``undecided`` (never a pass): the test is
-    only as good as its evidence. An oracle whose mean return does not exceed the zero command's fails
+    only as good as its evidence. Too few seeds whose P could not reach the threshold whatever the
+    missing seeds score (:func:`best_reachable_probability`) already fail. An oracle whose mean return does not exceed the zero command's fails
     whatever RL on source does: on its normalized scale, doing nothing would score above 100. RL on
     source that the oracle beats reliably (P) but only by a little (normalized score above the bound)
     fails too: it does not clearly fail in the target."""
@@ -229,7 +246,14 @@ def admit(gap: TaskGap) -> Admission:
     elif min(seeds, oracle_seeds) < MIN_SEEDS:
         short = [f"{n} {who} seed{'s' if n != 1 else ''}" for who, n in (("RL-on-source", seeds),
                                                                           ("oracle", oracle_seeds)) if n < MIN_SEEDS]
-        verdict, reason = "undecided", f"{' and '.join(short)}; the test needs {MIN_SEEDS} on each side"
+        reachable = best_reachable_probability(probability, oracle_seeds, seeds, MIN_SEEDS)  # type: ignore[arg-type]
+        if reachable < ADMISSION_PROBABILITY:
+            # The seeds given already decide it: no result of the missing ones lifts P to the threshold.
+            verdict, reason = "fails", (f"P = {probability:.2f} on {' and '.join(short)}; even if every missing "
+                                        f"seed went the oracle's way, P would reach at most {reachable:.2f} < "
+                                        f"{ADMISSION_PROBABILITY:.2f} with {MIN_SEEDS} on each side")
+        else:
+            verdict, reason = "undecided", f"{' and '.join(short)}; the test needs {MIN_SEEDS} on each side"
     elif gap.zero_command_return is None:
         verdict, reason = "undecided", (f"no zero-command reference: record one (offdyn-bench protocol reference "
                                         f"zero-command --task {gap.task})")

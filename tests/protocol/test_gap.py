@@ -170,6 +170,33 @@ def test_admission_never_passes_on_too_few_seeds_or_without_an_oracle(reference_
     assert none.verdict == "undecided" and none.reason.startswith("no lite oracle") and none.probability is None
 
 
+def test_too_few_seeds_fail_already_when_no_missing_seed_could_lift_p(reference_file):
+    """PROTOCOL §9: `hopper-morph-thigh-hard` at P = 0.50 on 4 oracle seeds could reach at most
+    15/25 = 0.60 with a fifth; such a pair fails on the seeds given, and its missing runs need not
+    be trained. A pair that the missing seeds could still lift to the threshold stays undecided."""
+    from offdyn_bench.protocol.gap import best_reachable_probability
+
+    # RL on source 1..5. Oracle 3 beats 2 and ties 1 (2.5 of 5), oracle 1.5 beats 1 (1 of 5): P = 3.5 / 10.
+    # Three more oracle seeds above all five at best: (3.5 + 3 x 5) / 25 = 0.74.
+    hopeless = _admission([3.0, 1.5], reference_file=reference_file)
+    assert (hopeless.verdict, hopeless.probability) == ("fails", 0.35)
+    assert hopeless.reason == ("P = 0.35 on 2 oracle seeds; even if every missing seed went the oracle's way, "
+                               "P would reach at most 0.74 < 0.90 with 5 on each side")
+    # Oracle 3 and 10: (2.5 + 5) / 10 = 0.75, at best (7.5 + 15) / 25 = 0.90: still open.
+    still_open = _admission([3.0, 10.0], reference_file=reference_file)
+    assert (still_open.verdict, still_open.probability) == ("undecided", 0.75)
+    # Missing RL-on-source seeds count the same way: the oracle (10) loses to both seeds given (20);
+    # three more RL-on-source seeds below every oracle seed give at best 3 x 5 / 25 = 0.60.
+    short_source = _admission([10.0] * 5, rl_on_source={0: [20.0], 1: [20.0]}, reference_file=reference_file)
+    assert short_source.verdict == "fails" and "at most 0.60 < 0.90" in short_source.reason
+    # The published hand computations (PROTOCOL §9): the hard thigh's 0.60, joint noise 1.0's 0.80.
+    assert best_reachable_probability(0.5, 4, 5, 5) == pytest.approx(0.6)
+    assert best_reachable_probability(0.0, 1, 5, 5) == pytest.approx(0.8)
+    assert best_reachable_probability(0.64, 7, 6, 5) == 0.64  # nothing missing: P as it is
+    with pytest.raises(OffdynError, match="a seed on each side"):
+        best_reachable_probability(1.0, 0, 5, 5)
+
+
 def test_an_oracle_below_the_zero_command_fails_whatever_rl_on_source_does(reference_file, tmp_path):
     """PROTOCOL §9: the Ant standing still earns 994.5 under friction x5, its lite oracle 164.0. An
     oracle that doing nothing beats is no oracle: on its scale doing nothing scores above 100."""
