@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import pathlib
 
 import gymnasium
 import numpy as np
@@ -49,6 +50,8 @@ def test_the_source_is_gymnasium_robotics_antmaze_step_for_step(maze, reward_typ
     vanilla_id = spec.vanilla_id(reward_type)
     vanilla_map = [[int(c) if c in "01" else c for c in row] for row in spec.source_map]
     vanilla = gymnasium.make(vanilla_id, maze_map=vanilla_map)
+    # Gymnasium-Robotics leaves the maze's generated MJCF in the temp folder (ant_maze<time>.xml).
+    pathlib.Path(vanilla.unwrapped.tmp_xml_file_path).unlink(missing_ok=True)
     ours = make_robot_env(antmaze_robot(maze, reward_type))
     actions = np.random.default_rng(0).uniform(-1, 1, size=(150, 8))
     for seed in (0, 7):
