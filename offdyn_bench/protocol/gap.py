@@ -206,13 +206,17 @@ def best_reachable_probability(probability: float, oracle_seeds: int, rl_on_sour
     """The largest P(oracle > RL on source) that completing both sides to ``seeds_needed`` seeds can
     give, from ``probability`` over the seeds given: every missing oracle seed beats every
     RL-on-source seed and every missing RL-on-source seed loses to every oracle seed. Below the
-    admission threshold, the pair fails whatever the missing seeds score."""
+    admission threshold, the pair fails whatever the missing seeds score. ``probability`` is the
+    Mann-Whitney statistic (ties count 1/2), so the wins it stands for are a multiple of 1/2."""
     if oracle_seeds < 1 or rl_on_source_seeds < 1:
         raise ProtocolError(f"a probability needs a seed on each side; got {oracle_seeds} oracle and "
                             f"{rl_on_source_seeds} RL-on-source seed(s)")
     missing_oracle = max(0, seeds_needed - oracle_seeds)
     missing_source = max(0, seeds_needed - rl_on_source_seeds)
-    wins = (probability * oracle_seeds * rl_on_source_seeds
+    # Back to a count of half-wins first, so that float rounding cannot move a bound that is exactly
+    # the threshold below it.
+    wins_given = round(probability * oracle_seeds * rl_on_source_seeds * 2) / 2
+    wins = (wins_given
             + missing_oracle * (rl_on_source_seeds + missing_source) + oracle_seeds * missing_source)
     return wins / ((oracle_seeds + missing_oracle) * (rl_on_source_seeds + missing_source))
 
@@ -220,9 +224,9 @@ def best_reachable_probability(probability: float, oracle_seeds: int, rl_on_sour
 def admit(gap: TaskGap) -> Admission:
     """The test on one measured gap of RL on source. Too few seeds on either side, no oracle at the
     gap's budget, or no zero-command or random reference, is ``undecided`` (never a pass): the test is
-    only as good as its evidence. Too few seeds whose P could not reach the threshold whatever the
-    missing seeds score (:func:`best_reachable_probability`) already fail. An oracle whose mean return does not exceed the zero command's fails
-    whatever RL on source does: on its normalized scale, doing nothing would score above 100. RL on
+    only as good as its evidence, except that too few seeds whose P could not reach the threshold
+    whatever the missing seeds score (:func:`best_reachable_probability`) already fail. An oracle
+    whose mean return does not exceed the zero command's fails whatever RL on source does: on its normalized scale, doing nothing would score above 100. RL on
     source that the oracle beats reliably (P) but only by a little (normalized score above the bound)
     fails too: it does not clearly fail in the target."""
     from offdyn_bench.protocol.definition import (
@@ -246,8 +250,9 @@ def admit(gap: TaskGap) -> Admission:
     elif min(seeds, oracle_seeds) < MIN_SEEDS:
         short = [f"{n} {who} seed{'s' if n != 1 else ''}" for who, n in (("RL-on-source", seeds),
                                                                           ("oracle", oracle_seeds)) if n < MIN_SEEDS]
-        reachable = best_reachable_probability(probability, oracle_seeds, seeds, MIN_SEEDS)  # type: ignore[arg-type]
-        if reachable < ADMISSION_PROBABILITY:
+        reachable = (None if probability is None else
+                     best_reachable_probability(probability, oracle_seeds, seeds, MIN_SEEDS))
+        if reachable is not None and reachable < ADMISSION_PROBABILITY:
             # The seeds given already decide it: no result of the missing ones lifts P to the threshold.
             verdict, reason = "fails", (f"P = {probability:.2f} on {' and '.join(short)}; even if every missing "
                                         f"seed went the oracle's way, P would reach at most {reachable:.2f} < "

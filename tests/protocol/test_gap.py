@@ -192,7 +192,9 @@ def test_too_few_seeds_fail_already_when_no_missing_seed_could_lift_p(reference_
     # The published hand computations (PROTOCOL §9): the hard thigh's 0.60, joint noise 1.0's 0.80.
     assert best_reachable_probability(0.5, 4, 5, 5) == pytest.approx(0.6)
     assert best_reachable_probability(0.0, 1, 5, 5) == pytest.approx(0.8)
-    assert best_reachable_probability(0.64, 7, 6, 5) == 0.64  # nothing missing: P as it is
+    assert best_reachable_probability(27 / 42, 7, 6, 5) == pytest.approx(27 / 42)  # nothing missing: P as it is
+    # P stands for a count of half-wins: a P a hair under 7.5 of 10 is 7.5, whose bound is the threshold itself.
+    assert best_reachable_probability(0.75 - 1e-9, 2, 5, 5) == pytest.approx(0.9, abs=1e-15)
     with pytest.raises(OffdynError, match="a seed on each side"):
         best_reachable_probability(1.0, 0, 5, 5)
 
