@@ -196,6 +196,9 @@ class Admission:
     """Whether the pair is in the current protocol version's core suite."""
     rl_on_source_score: float | None = None
     """RL on source's normalized target score against this oracle; None without a random reference or oracle."""
+    missing_oracle_mean_needed: float | None = None
+    """For a pair undecided only for want of oracle seeds: the mean return its missing oracle seeds
+    must exceed for conditions (a) and (c) to hold (P aside); None otherwise."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -219,6 +222,27 @@ def best_reachable_probability(probability: float, oracle_seeds: int, rl_on_sour
     wins = (wins_given
             + missing_oracle * (rl_on_source_seeds + missing_source) + oracle_seeds * missing_source)
     return wins / ((oracle_seeds + missing_oracle) * (rl_on_source_seeds + missing_source))
+
+
+def missing_oracle_mean_needed(gap: TaskGap, seeds_needed: int) -> float | None:
+    """The mean return that the oracle seeds ``gap`` lacks (up to ``seeds_needed``) must exceed for
+    the oracle's mean to beat the zero command (condition a) and for RL on source to score at most
+    the bound (condition c): a pair with two oracle seeds of 250 that needs its three missing ones
+    to average 500 is, in practice, decided. None where it is not computable: no oracle seed
+    missing, RL-on-source seeds missing too (their mean would move), or no zero-command or random
+    reference."""
+    from offdyn_bench.protocol.definition import ADMISSION_MAX_SOURCE_SCORE
+
+    given = list(gap.oracle_seed_means or ())
+    missing = seeds_needed - len(given)
+    if (not given or missing <= 0 or len(gap.target_seed_means) < seeds_needed
+            or gap.zero_command_return is None or gap.random_return is None or gap.target_return is None):
+        return None
+    random = gap.random_return
+    # (c): 100 (J - r) / (O - r) <= bound, with O > r, is O >= r + 100 (J - r) / bound; at J <= r any O > r.
+    least_for_score = random + max(0.0, 100.0 * (gap.target_return - random) / ADMISSION_MAX_SOURCE_SCORE)
+    least_mean = max(gap.zero_command_return, least_for_score)
+    return (least_mean * seeds_needed - sum(given)) / missing
 
 
 def admit(gap: TaskGap) -> Admission:
@@ -259,6 +283,12 @@ def admit(gap: TaskGap) -> Admission:
                                         f"{ADMISSION_PROBABILITY:.2f} with {MIN_SEEDS} on each side")
         else:
             verdict, reason = "undecided", f"{' and '.join(short)}; the test needs {MIN_SEEDS} on each side"
+            needed = missing_oracle_mean_needed(gap, MIN_SEEDS)
+            # Said where the missing seeds must do better than the seeds given: that is what decides a run.
+            if needed is not None and needed > np.mean(gap.oracle_seed_means):  # type: ignore[arg-type]
+                missing = MIN_SEEDS - oracle_seeds
+                reason += (f"; to pass, the {missing} missing oracle seed{'s' if missing != 1 else ''} must average "
+                           f"above {needed:.1f} (the {oracle_seeds} given: {np.mean(gap.oracle_seed_means):.1f})")
     elif gap.zero_command_return is None:
         verdict, reason = "undecided", (f"no zero-command reference: record one (offdyn-bench protocol reference "
                                         f"zero-command --task {gap.task})")
@@ -282,7 +312,8 @@ def admit(gap: TaskGap) -> Admission:
         verdict, reason = "passes", (f"P = {probability:.2f} >= {ADMISSION_PROBABILITY:.2f}; RL on source scores "
                                      f"{gap.normalized_target:.1f} <= {ADMISSION_MAX_SOURCE_SCORE:.0f} normalized")
     return Admission(gap.task, gap.budget, seeds, oracle_seeds, probability, verdict, reason,
-                     gap.task in CORE_SUITE, gap.normalized_target)
+                     gap.task in CORE_SUITE, gap.normalized_target,
+                     missing_oracle_mean_needed(gap, MIN_SEEDS) if verdict == "undecided" else None)
 
 
 def admissions_markdown(admissions: Sequence[Admission]) -> str:

@@ -199,6 +199,37 @@ def test_too_few_seeds_fail_already_when_no_missing_seed_could_lift_p(reference_
         best_reachable_probability(1.0, 0, 5, 5)
 
 
+def test_an_undecided_pair_says_what_its_missing_oracle_seeds_must_average(reference_file, tmp_path):
+    """PROTOCOL §9: `hopper-friction-5.0` on 2 oracle seeds (254.8, 226.8) could pass only if the 3
+    missing ones averaged at least 495.6; the command now says so instead of leaving it to a reader."""
+    # Walker: random 1, zero command 2; RL on source 1..5 (mean 3). (c) needs the oracle's mean at
+    # least 1 + 100 x (3 - 1) / 50 = 5, (a) above 2: the five seeds must sum to 25, and 4.5 + 4.5 are
+    # given (P = 8 / 10, at best 23 / 25: open), so the other three must average 16 / 3.
+    open_pair = _admission([4.5, 4.5], reference_file=reference_file)
+    assert (open_pair.verdict, open_pair.probability) == ("undecided", 0.8)
+    assert open_pair.missing_oracle_mean_needed == pytest.approx(16 / 3)
+    assert open_pair.reason == ("2 oracle seeds; the test needs 5 on each side; to pass, the 3 missing oracle seeds "
+                                "must average above 5.3 (the 2 given: 4.5)")
+    # RL on source at the random policy's return: (c) holds for any oracle above random, so (a) binds:
+    # a mean above 2, a sum above 10 over five seeds, 6 given: the other four above 1.0.
+    at_random = _admission([3.0, 3.0], rl_on_source={s: [1.0] for s in range(5)}, reference_file=reference_file)
+    assert at_random.missing_oracle_mean_needed == pytest.approx(4 / 3)
+    # Below the given seeds' own mean it is no news, so the reason leaves it out (the field keeps it).
+    assert at_random.reason == "2 oracle seeds; the test needs 5 on each side"
+    # Not computable: RL-on-source seeds missing too (their mean would move), or no zero-command reference.
+    assert _admission([3.0, 10.0], rl_on_source={0: [1.0], 1: [2.0]},
+                      reference_file=reference_file).missing_oracle_mean_needed is None
+    data = json.loads(reference_file.read_text())
+    del data["tasks"][WALKER]["zero_command"]
+    bare = tmp_path / "no-zero.json"
+    bare.write_text(json.dumps(data))
+    unknown = _admission([3.0, 10.0], reference_file=bare)
+    assert (unknown.verdict, unknown.missing_oracle_mean_needed) == ("undecided", None)
+    assert unknown.reason == "2 oracle seeds; the test needs 5 on each side"
+    # A decided pair carries none.
+    assert _admission([3.0, 6.0, 7.0, 8.0, 9.0], reference_file=reference_file).missing_oracle_mean_needed is None
+
+
 def test_an_oracle_below_the_zero_command_fails_whatever_rl_on_source_does(reference_file, tmp_path):
     """PROTOCOL §9: the Ant standing still earns 994.5 under friction x5, its lite oracle 164.0. An
     oracle that doing nothing beats is no oracle: on its scale doing nothing scores above 100."""
