@@ -352,11 +352,14 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
     for budget_dir in sorted(path for path in root.glob("*") if path.is_dir()):
         source_records = [read_checked(path) for path in sorted(budget_dir.glob("sac-source/*/*/evaluation*.json"))
                           if path.name in RECORD_FILES]
-        gaps = {gap.task: gap for gap in measure_gaps(source_records, str(references) if references else None)} \
+        oracle_records = [read_checked(path) for path in sorted(budget_dir.glob(f"sac-target/*/*/{EVALUATION_FILE}"))]
+        # The oracle runs are a candidate's oracle where the reference file records none, as in
+        # `protocol admission`: the board's test is the command's, on the same records.
+        gaps = {gap.task: gap for gap in measure_gaps(source_records + oracle_records,
+                                                      str(references) if references else None)} \
             if source_records else {}
         oracle: dict[str, list[float]] = {}
-        for path in sorted(budget_dir.glob(f"sac-target/*/*/{EVALUATION_FILE}")):
-            record = read_checked(path)
+        for record in oracle_records:
             oracle.setdefault(record["task"], []).extend(seed_means(record).values())
         candidates = sorted((set(gaps) | set(oracle)) - set(CORE_SUITE))
         progress[budget_dir.name] = [ReferenceProgress(task, gaps.get(task), tuple(oracle.get(task, ())),

@@ -74,12 +74,13 @@ _PROGRESS_NOTE = ("Not submissions: the published runs of the two reference poin
                   "RL on source evaluated on both sides of each task), as they come in: each core task's source-target "
                   "gap, and how far the oracle is from RL on source there. "
                   "Returns are means over training seeds, their number in brackets; kept = target / source return; "
-                  "the normalized score and P(oracle > RL on source) use the task's oracle reference, '-' where "
-                  "it does not exist yet. Core suite: 'yes' for the protocol version's core suite, 'candidate' for "
+                  "the normalized score and P(oracle > RL on source) use the task's oracle reference (for a "
+                  "candidate without one, its published oracle runs), '-' where neither exists yet. Core suite: 'yes' for the protocol version's core suite, 'candidate' for "
                   "a pair outside it whose runs are published to test it. Same-budget test (PROTOCOL.md §9, "
                   "`offdyn-bench protocol admission`): whether, over 5 seeds each side, the oracle beats the zero "
                   "command, beats RL on source with P >= 0.9, and RL on source scores at most 50 normalized; "
-                  "'undecided' while a side has fewer seeds or the task no oracle or reference.")
+                  "'undecided' while a side has fewer seeds (unless no result of the missing seeds could lift P "
+                  "to 0.9) or the task no oracle or reference.")
 
 
 def _progress_cells(row: ReferenceProgress) -> list[tuple[str, str | float | None]]:

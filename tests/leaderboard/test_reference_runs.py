@@ -16,6 +16,7 @@ from leaderboard.reference_runs import (
     check_reference_curve,
     check_reference_record,
     publish_reference_runs,
+    reference_progress,
 )
 from leaderboard.submission import SubmissionError
 
@@ -156,6 +157,20 @@ def test_protocol_md_names_the_core_pairs_that_pass_the_admission_test_on_the_pu
     assert named == {task for task, verdict in verdicts.items() if verdict == "passes"}
     assert {verdict for task, verdict in verdicts.items() if task not in named} == {"fails"}
     assert "offdyn-bench protocol admission" in text
+
+
+def test_the_boards_same_budget_test_is_protocol_admissions_on_the_published_runs():
+    """The board's progress table and `offdyn-bench protocol admission` give every published pair the
+    same verdict. A candidate has no recorded oracle: its oracle runs are its oracle in both (the
+    board once left them out and called `hopper-gravity-5.0`, which the command fails, undecided)."""
+    from offdyn_bench.protocol.gap import admit, measure_gaps
+
+    lite = [record for record in _records("sac-source") + _records("sac-target") if record["budget"] == "lite"]
+    command = {one.task: (one.verdict, one.reason) for one in map(admit, measure_gaps(lite))}
+    board = {row.task: (row.admission.verdict, row.admission.reason)
+             for row in reference_progress()["lite"] if row.admission is not None}
+    assert board == command
+    assert board["hopper-gravity-5.0"][0] == "fails" and board["halfcheetah-gravity-5.0"][0] == "passes"
 
 
 # Publishing: a sweep's out folder, here built from the published records themselves.
