@@ -250,9 +250,10 @@ def admit(gap: TaskGap) -> Admission:
     gap's budget, or no zero-command or random reference, is ``undecided`` (never a pass): the test is
     only as good as its evidence, except that too few seeds whose P could not reach the threshold
     whatever the missing seeds score (:func:`best_reachable_probability`) already fail. An oracle
-    whose mean return does not exceed the zero command's fails whatever RL on source does: on its normalized scale, doing nothing would score above 100. RL on
-    source that the oracle beats reliably (P) but only by a little (normalized score above the bound)
-    fails too: it does not clearly fail in the target."""
+    whose mean return does not exceed the zero command's fails whatever RL on source does: on its
+    normalized scale, doing nothing would score above 100. RL on source that the oracle beats
+    reliably (P) but only by a little (normalized score above the bound) fails too: it does not
+    clearly fail in the target."""
     from offdyn_bench.protocol.definition import (
         ADMISSION_MAX_SOURCE_SCORE,
         ADMISSION_PROBABILITY,
@@ -268,6 +269,7 @@ def admit(gap: TaskGap) -> Admission:
     oracle_seeds = len(gap.oracle_seed_means or ())
     seeds = len(gap.target_seed_means)
     probability = gap.oracle_better_probability
+    needed: float | None = None  # what missing oracle seeds must average; only for a pair short of them
     if gap.oracle_seed_means is None:
         verdict, reason = "undecided", (f"no {gap.budget} oracle: record one (protocol reference oracle) or pass "
                                         f"{ORACLE_METHOD}'s records")
@@ -283,12 +285,14 @@ def admit(gap: TaskGap) -> Admission:
                                         f"{ADMISSION_PROBABILITY:.2f} with {MIN_SEEDS} on each side")
         else:
             verdict, reason = "undecided", f"{' and '.join(short)}; the test needs {MIN_SEEDS} on each side"
-            needed = missing_oracle_mean_needed(gap, MIN_SEEDS)
-            # Said where the missing seeds must do better than the seeds given: that is what decides a run.
-            if needed is not None and needed > np.mean(gap.oracle_seed_means):  # type: ignore[arg-type]
-                missing = MIN_SEEDS - oracle_seeds
-                reason += (f"; to pass, the {missing} missing oracle seed{'s' if missing != 1 else ''} must average "
-                           f"above {needed:.1f} (the {oracle_seeds} given: {np.mean(gap.oracle_seed_means):.1f})")
+            needed = missing_oracle_mean_needed(gap, MIN_SEEDS)  # None without an oracle seed
+            if needed is not None:
+                given_mean = float(np.mean(gap.oracle_seed_means))  # type: ignore[arg-type]  # seeds exist here
+                # Said where the missing seeds must do better than the seeds given: that decides a run.
+                if needed > given_mean:
+                    missing = MIN_SEEDS - oracle_seeds
+                    reason += (f"; to pass, the {missing} missing oracle seed{'s' if missing != 1 else ''} must "
+                               f"average above {needed:.1f} (the {oracle_seeds} given: {given_mean:.1f})")
     elif gap.zero_command_return is None:
         verdict, reason = "undecided", (f"no zero-command reference: record one (offdyn-bench protocol reference "
                                         f"zero-command --task {gap.task})")
@@ -312,8 +316,7 @@ def admit(gap: TaskGap) -> Admission:
         verdict, reason = "passes", (f"P = {probability:.2f} >= {ADMISSION_PROBABILITY:.2f}; RL on source scores "
                                      f"{gap.normalized_target:.1f} <= {ADMISSION_MAX_SOURCE_SCORE:.0f} normalized")
     return Admission(gap.task, gap.budget, seeds, oracle_seeds, probability, verdict, reason,
-                     gap.task in CORE_SUITE, gap.normalized_target,
-                     missing_oracle_mean_needed(gap, MIN_SEEDS) if verdict == "undecided" else None)
+                     gap.task in CORE_SUITE, gap.normalized_target, needed)
 
 
 def admissions_markdown(admissions: Sequence[Admission]) -> str:
