@@ -314,12 +314,20 @@ class GraphedUpdate:
     registered with the graph, so every replay draws fresh numbers. The optimizers must be
     ``capturable`` (see :func:`make_capturable`). The warm-up updates the graph needs are real
     updates: a graphed run is deterministic, but not equal to an eager one.
+
+    Only the newest GraphedUpdate of a process may replay (an older one raises): on an H200, an
+    older graph replayed after a newer one was built computed NaN losses, then faulted.
     """
+
+    _built: ClassVar[int] = 0
+    """How many GraphedUpdates this process has built: only the newest may replay."""
 
     def __init__(self, update: Callable[[Batch], Metrics], example: Batch,
                  generators: Sequence[torch.Generator], warmup_updates: int = 3) -> None:
         if example.observations.device.type != "cuda":
             raise ValueError("GraphedUpdate needs CUDA tensors (a CUDA graph captures GPU work)")
+        GraphedUpdate._built += 1
+        self.number = GraphedUpdate._built
         self.static_batch = Batch(*(x.clone() for x in example))
         side_stream = torch.cuda.Stream()
         side_stream.wait_stream(torch.cuda.current_stream())
@@ -338,6 +346,14 @@ class GraphedUpdate:
             self.metrics = update(self.static_batch)
 
     def __call__(self, batch: Batch) -> Metrics:
+        if self.number != GraphedUpdate._built:
+            # Seen on an H200 (torch 2.11): once a second GraphedUpdate was built in the process,
+            # the first one's replays read memory the second reused, giving NaN losses and then
+            # illegal memory accesses. Cause not established; one graph per process is safe.
+            raise RuntimeError(f"this GraphedUpdate is number {self.number} of {GraphedUpdate._built} built in "
+                               "this process, and only the newest may replay: replaying an older one after "
+                               "another was built corrupts its updates. Build one GraphedUpdate per process "
+                               "(one training run per process; a benchmark measures one graph at a time)")
         for static, fresh in zip(self.static_batch, batch):
             static.copy_(fresh, non_blocking=True)
         self.graph.replay()

@@ -9,19 +9,26 @@ alternating rounds so background load hits every variant alike:
 * ``graph``: the same update replayed from a CUDA graph (:class:`baselines.sac.GraphedUpdate`);
 
 each with 256x256 networks, batch 256, Hopper's sizes (11/3), random transitions, for 1 seed and
-for ``--seeds`` seeds.
+for ``--seeds`` seeds. The eager variants alternate with SB3 in one block; each graphed variant then
+alternates with SB3 in a block of its own, since only the newest CUDA graph of a process may replay.
 
 Then the third target: whole ``train`` runs, environments and evaluation included, at least 5x
 the aggregate training steps/s of the same seeds trained one after another on the CPU.
-``--train-seeds`` seeds run together (``--n-seeds N --device cuda --set cuda_graph=true``)
+``--train-seeds`` seeds run together (``--n-seeds N --device cuda``, the eager update)
 against ``--train-cpu-seeds`` of them one after another with ``--device cpu`` and one torch thread,
 with the same method, task, steps and evaluation settings. Runs one after another have an aggregate rate equal to one run's
 (every seed costs the same steps), so a few CPU seeds measure it; ``--train-seeds 0`` skips this.
+
+Then, with ``--methods``, the reference methods as a sweep runs them on one GPU machine: for each
+method, ``--methods-gpu-seeds`` seeds trained together on CUDA and one seed on one CPU core, all of
+these runs at once in their own processes (the GPU runs share the GPU), on ``--methods-task``; per
+method the ratio of aggregate seed-steps/s (CQL: seed-updates/s).
 
 Without a CUDA device it says so and measures nothing (exit status 0).
 
     .venv/bin/pip install -e ".[bench]"        # Stable-Baselines3, pinned
     .venv/bin/python benchmarks/bench_gpu.py [--seeds 1 20] [--rounds 5] [--train-seeds 20] [--json out.json]
+    .venv/bin/python benchmarks/bench_gpu.py --seeds --skip-sb3 --train-seeds 0 --methods cql dap   # methods only
 """
 
 from __future__ import annotations
@@ -41,8 +48,14 @@ import torch
 from baselines.buffers import ReplayBuffer
 from baselines.sac import GraphedUpdate, SACAgent, SACConfig, make_capturable, sac_update
 from baselines.train import train
+from offdyn_bench.datasets.ensure import ensure_dataset
+from offdyn_bench.protocol import official_dataset
 
 OBS_DIM, ACTION_DIM, BATCH, BUFFER = 11, 3, 256, 10_000
+
+
+class NonFiniteLoss(RuntimeError):
+    """A measured update computed a NaN or infinite loss: its speed means nothing."""
 
 
 def _filled_buffer(n_seeds: int, device: str) -> ReplayBuffer:
@@ -71,7 +84,8 @@ def _ours(n_seeds: int, updates: int, graphed: bool) -> Callable[[], float]:
         for _ in range(updates):
             metrics = step(buffer.sample(BATCH))
         torch.cuda.synchronize()  # the only host sync: the timing needs the work done
-        assert torch.isfinite(metrics["critic/td_loss"]).all()
+        if not torch.isfinite(metrics["critic/td_loss"]).all():
+            raise NonFiniteLoss(f"non-finite TD loss after {updates} more updates")
         return updates / (time.perf_counter() - start)
 
     return run
@@ -101,9 +115,24 @@ def _stable_baselines3(updates: int) -> Callable[[], float]:
     return run
 
 
+# Config keys that shorten the start-up phases, per method: the benchmark measures the updates the
+# run spends most of its budget on, not the uniform-random prefill.
+_PHASE_KEYS = {"sac-source": ("random_steps",), "sac-target": ("random_steps",), "h2o": ("random_steps",),
+               "darc": ("random_steps", "warmup_steps"), "dap": ("random_steps", "warmup_steps"),
+               "dap-u": ("random_steps", "warmup_steps"), "cql": ()}
+
+
+def _overrides(method: str, random_steps: int) -> dict[str, str]:
+    keys = _PHASE_KEYS.get(method)
+    if keys is None:
+        raise SystemExit(f"bench_gpu: no start-up phases known for method {method!r}; known: {sorted(_PHASE_KEYS)}")
+    # warmup_steps (DARC's and DAP's classifier start) follows the random prefill, as in the defaults.
+    return {key: str(random_steps * (2 if key == "warmup_steps" else 1)) for key in keys}
+
+
 def _timed_train(out: Path, *, method: str, task: str, steps: int, random_steps: int, seed: int, n_seeds: int,
                  device: str) -> float:
-    overrides = {"random_steps": str(random_steps)} | ({"cuda_graph": "true"} if device != "cpu" else {})
+    overrides = _overrides(method, random_steps)
     start = time.perf_counter()
     train(method, task, steps=steps, out=out, seed=seed, n_seeds=n_seeds, device=device, threads=1,
           overrides=overrides, eval_every=steps, eval_episodes=2, progress=False)
@@ -115,7 +144,7 @@ def bench_train(method: str, task: str, steps: int, random_steps: int, gpu_seeds
     them trained one after another on one CPU core."""
     common = {"method": method, "task": task, "steps": steps, "random_steps": random_steps}
     with tempfile.TemporaryDirectory() as tmp:
-        # Warm-up: CUDA context, cuBLAS handles, the graph capture, MuJoCo model compilation.
+        # Warm-up: CUDA context, cuBLAS handles, MuJoCo model compilation.
         _timed_train(Path(tmp) / "warm-up", seed=0, n_seeds=gpu_seeds, device="cuda",
                      **common | {"steps": random_steps + 50})
         gpu_s = _timed_train(Path(tmp) / "cuda", seed=0, n_seeds=gpu_seeds, device="cuda", **common)
@@ -127,9 +156,49 @@ def bench_train(method: str, task: str, steps: int, random_steps: int, gpu_seeds
             "gpu_seed_steps_per_s": gpu_rate, "cpu_seed_steps_per_s": cpu_rate, "ratio": gpu_rate / cpu_rate}
 
 
+def _timed_job(job: dict) -> dict:
+    """One process of :func:`bench_methods` (module level so that a spawned worker can import it)."""
+    seconds = _timed_train(Path(job.pop("out")), **job)
+    return job | {"seconds": seconds}
+
+
+def bench_methods(methods: list[str], task: str, steps: int, random_steps: int, gpu_seeds: int,
+                  accelerator: str = "cuda") -> list[dict]:
+    """Per method, ``gpu_seeds`` seeds trained together on CUDA against one seed trained on one CPU
+    core, every run at once in its own process: a sweep's layout on one GPU machine (the GPU runs
+    share the GPU, each CPU run has a core). Same method, task, steps and evaluation on both sides."""
+    import concurrent.futures
+    import multiprocessing
+
+    common = {"task": task, "steps": steps, "random_steps": random_steps, "seed": 0}
+    with tempfile.TemporaryDirectory() as tmp:
+        # The task's official target dataset, installed and verified once before anything is timed.
+        ensure_dataset(official_dataset(task, "offline-target"), progress=False, echo=print)
+        jobs = [common | {"method": m, "n_seeds": n, "device": d, "out": str(Path(tmp) / f"{m}-{d}-{n}")}
+                for m in methods for d, n in ((accelerator, gpu_seeds), ("cpu", 1))]
+        # spawn: CUDA cannot be used in a forked child.
+        done = []
+        with concurrent.futures.ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn")) as pool:
+            for future in concurrent.futures.as_completed([pool.submit(_timed_job, dict(job)) for job in jobs]):
+                done.append(future.result())
+                # Printed as each run ends, so a call cut short still reports the runs that finished.
+                print(f"  {done[-1]['method']} on {done[-1]['device']}, {done[-1]['n_seeds']} seeds: "
+                      f"{done[-1]['seconds']:.1f} s", flush=True)
+    rows = []
+    for method in methods:
+        gpu, cpu = (next(j for j in done if j["method"] == method and j["device"] == d and j["n_seeds"] == n)
+                    for d, n in ((accelerator, gpu_seeds), ("cpu", 1)))
+        gpu_rate, cpu_rate = gpu["n_seeds"] * steps / gpu["seconds"], steps / cpu["seconds"]
+        rows.append({"method": method, "task": task, "steps_per_seed": steps, "gpu_seeds": gpu["n_seeds"],
+                     "gpu_seconds": gpu["seconds"], "cpu_seconds": cpu["seconds"],
+                     "gpu_seed_steps_per_s": gpu_rate, "cpu_seed_steps_per_s": cpu_rate, "ratio": gpu_rate / cpu_rate,
+                     "concurrent_processes": len(jobs)})
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 20])
+    parser.add_argument("--seeds", type=int, nargs="*", default=[1, 20], help="none: skip the update benchmark")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--updates-per-round", type=int, default=500)
     parser.add_argument("--skip-sb3", action="store_true")
@@ -138,6 +207,12 @@ def main() -> None:
     parser.add_argument("--train-steps", type=int, default=2500, help="environment steps per seed")
     parser.add_argument("--train-random-steps", type=int, default=500, help="random steps before updates start")
     parser.add_argument("--train-task", default="hopper-gravity-0.5")
+    parser.add_argument("--methods", nargs="*", default=[],
+                        help="also train these methods at once, each seed-batched on CUDA and one seed on a CPU core")
+    parser.add_argument("--methods-task", default="halfcheetah-friction-5.0")
+    parser.add_argument("--methods-steps", type=int, default=3000, help="steps (CQL: updates) per seed")
+    parser.add_argument("--methods-random-steps", type=int, default=500)
+    parser.add_argument("--methods-gpu-seeds", type=int, default=5)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     if not torch.cuda.is_available():
@@ -145,31 +220,45 @@ def main() -> None:
         return
     report: dict = {"device": torch.cuda.get_device_name(), "torch": torch.__version__, "rows": []}
     sb3 = None if args.skip_sb3 else _stable_baselines3(args.updates_per_round)
-    variants: dict[str, Callable[[], float]] = {}
+
+    def measure(block: dict[str, Callable[[], float]]) -> None:
+        """Time the block's variants and SB3 in alternating rounds; ratios to SB3 come per round."""
+        runs = block | ({"sb3": sb3} if sb3 else {})
+        for run in runs.values():
+            run()  # warm-up (allocator, kernels, cuBLAS handles)
+        timed: dict[str, list[float]] = {name: [] for name in runs}
+        for _ in range(args.rounds):
+            for name, run in runs.items():
+                timed[name].append(run())
+        for name, rates in timed.items():
+            if name == "sb3" and any(row["variant"] == "sb3" for row in report["rows"]):
+                continue  # SB3's own row once, from the first block
+            n = 1 if name == "sb3" else int(name.rsplit("-", 1)[1])
+            row = {"variant": name, "seeds": n, "updates_per_s": statistics.median(rates),
+                   "seed_updates_per_s": n * statistics.median(rates)}
+            if sb3 and name != "sb3":
+                row["seed_updates_vs_sb3"] = n * statistics.median(a / b for a, b in zip(rates, timed["sb3"]))
+            report["rows"].append(row)
+            print(f"{name:>10}: {row['updates_per_s']:9.1f} updates/s, {row['seed_updates_per_s']:10.1f} "
+                  "seed-updates/s" + (f", {row['seed_updates_vs_sb3']:.1f}x SB3" if "seed_updates_vs_sb3" in row
+                                      else ""), flush=True)
+
+    measure({f"eager-{n}": _ours(n, args.updates_per_round, graphed=False) for n in args.seeds})
+    # One CUDA graph at a time: only the newest GraphedUpdate of a process may replay.
     for n in args.seeds:
-        variants[f"eager-{n}"] = _ours(n, args.updates_per_round, graphed=False)
         try:
-            variants[f"graph-{n}"] = _ours(n, args.updates_per_round, graphed=True)
+            graph = _ours(n, args.updates_per_round, graphed=True)
         except RuntimeError as error:  # reported, not hidden: the graph path is the one to fix
             print(f"graph capture failed for {n} seeds: {error}", file=sys.stderr)
-    timed = {name: [] for name in variants} | ({"sb3": []} if sb3 else {})
-    for run in list(variants.values()) + ([sb3] if sb3 else []):
-        run()  # warm-up (allocator, kernels, cuBLAS handles)
-    for _ in range(args.rounds):
-        for name, run in variants.items():
-            timed[name].append(run())
-        if sb3:
-            timed["sb3"].append(sb3())
-    for name, rates in timed.items():
-        n = 1 if name == "sb3" else int(name.rsplit("-", 1)[1])
-        row = {"variant": name, "seeds": n, "updates_per_s": statistics.median(rates),
-               "seed_updates_per_s": n * statistics.median(rates)}
-        if sb3 and name != "sb3":
-            ratios = [a / b for a, b in zip(rates, timed["sb3"])]
-            row["seed_updates_vs_sb3"] = n * statistics.median(ratios)
-        report["rows"].append(row)
-        print(f"{name:>10}: {row['updates_per_s']:9.1f} updates/s, {row['seed_updates_per_s']:10.1f} seed-updates/s"
-              + (f", {row['seed_updates_vs_sb3']:.1f}x SB3" if "seed_updates_vs_sb3" in row else ""), flush=True)
+            continue
+        try:
+            measure({f"graph-{n}": graph})
+        except NonFiniteLoss as error:
+            # Seen on an H200 (torch 2.11): why training runs refuse cuda_graph=true. Reported, so a
+            # fix shows here as finite rows.
+            report["rows"].append({"variant": f"graph-{n}", "seeds": n, "non_finite": str(error)})
+            print(f"   graph-{n}: {error}: the CUDA-graph update is withdrawn from training (see "
+                  "baselines/online_sac.py)", flush=True)
     if args.train_seeds:
         t = bench_train("sac-target", args.train_task, args.train_steps, args.train_random_steps, args.train_seeds,
                         args.train_cpu_seeds)
@@ -177,6 +266,15 @@ def main() -> None:
         print(f"whole train runs, sac-target on {t['task']}, {t['steps_per_seed']} steps per seed: {t['gpu_seeds']} "
               f"seeds together on CUDA {t['gpu_seed_steps_per_s']:.0f} seed-steps/s, one after another on one CPU "
               f"core {t['cpu_seed_steps_per_s']:.0f}, ratio {t['ratio']:.1f}x", flush=True)
+    if args.methods:
+        report["methods"] = bench_methods(args.methods, args.methods_task, args.methods_steps,
+                                          args.methods_random_steps, args.methods_gpu_seeds)
+        for row in report["methods"]:
+            print(f"{row['method']:>10} on {row['task']}, {row['steps_per_seed']} steps per seed, "
+                  f"{row['concurrent_processes']} processes at once: {row['gpu_seeds']} seeds on CUDA "
+                  f"{row['gpu_seed_steps_per_s']:.0f} seed-steps/s ({row['gpu_seconds']:.0f} s), one seed on a CPU "
+                  f"core {row['cpu_seed_steps_per_s']:.0f} ({row['cpu_seconds']:.0f} s), ratio {row['ratio']:.1f}x",
+                  flush=True)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 

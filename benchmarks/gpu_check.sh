@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# The GPU checks of one lent device call, in one script (the lease is short; a second start costs
+# minutes): the CUDA tests, then bench_gpu.py's update and whole-train benchmarks, then the reference
+# methods side by side (seed-batched on CUDA against one seed per CPU core, all at once).
+#
+#   bash benchmarks/gpu_check.sh --prepare    # here: fills .whl/ and .device-data/ (both git-ignored)
+#   bash benchmarks/gpu_check.sh              # there, carrying .whl and .device-data; logs and JSON in $OUT
+#
+# The device has Python 3.12 and torch with CUDA but no registry, so the rest travels as wheels; what
+# travels must stay under 64 MiB, so the Gymnasium-Robotics wheel loses the assets of the robots this
+# suite does not use (Franka kitchen, the Fetch/hand meshes). The methods' target dataset travels
+# installed: the device's h5py is not the pinned one, so a rebuild there would not match the
+# manifest's sha256.
+set -u
+methods_task=halfcheetah-friction-5.0
+if [ "${1:-}" = "--prepare" ]; then
+  set -e
+  mkdir -p .git/info .whl .device-data
+  for d in /.whl/ /.device-data/; do grep -qx "$d" .git/info/exclude 2>/dev/null || echo "$d" >> .git/info/exclude; done
+  for pkg in mujoco==3.17.0 gymnasium==1.4.0 minari==0.5.4 glfw farama-notifications gymnasium-robotics==1.4.2 \
+             pettingzoo==1.27.0 stable-baselines3==2.9.2; do
+    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+      --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+      --platform manylinux2014_x86_64 -d .whl "$pkg"
+  done
+  wheel=$(ls .whl/gymnasium_robotics-*.whl)
+  tmp=$(mktemp -d)
+  (cd "$tmp" && unzip -q "$OLDPWD/$wheel" && rm -rf gymnasium_robotics/envs/assets/kitchen_franka \
+     gymnasium_robotics/envs/assets/stls && record=$(ls -d ./*.dist-info)/RECORD \
+     && grep -v -e assets/kitchen_franka -e assets/stls "$record" > "$record.new" && mv "$record.new" "$record" \
+     && rm "$OLDPWD/$wheel" && zip -qr -9 "$OLDPWD/$wheel" .)
+  rm -rf "$tmp"
+  .venv/bin/python -c "
+from offdyn_bench.datasets.ensure import ensure_dataset
+from offdyn_bench.protocol import official_dataset
+ensure_dataset(official_dataset('$methods_task', 'offline-target'), progress=False, echo=print)"
+  dataset=$(.venv/bin/python -c "from offdyn_bench.protocol import official_dataset; print(official_dataset('$methods_task', 'offline-target'))")
+  mkdir -p ".device-data/$(dirname "$dataset")"
+  cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" ".device-data/$(dirname "$dataset")/"
+  du -sh .whl .device-data
+  exit 0
+fi
+
+out=${OUT:-/tmp/gpu-check}
+mkdir -p "$out"
+unset MUJOCO_GL  # 'egl' fails where the EGL libraries are missing; nothing here renders
+export PYTHONUNBUFFERED=1
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD
+[ -d .device-data ] && export MINARI_DATASETS_PATH=$PWD/.device-data
+nproc
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$out/nvidia-smi.txt"
+python3 -c "import torch, mujoco, offdyn_bench, baselines; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'mujoco', mujoco.__version__)" || exit 1
+
+echo "== CUDA tests"
+timeout 180 python3 -m pytest -q -p no:cacheprovider tests/baselines/test_baselines_device.py 2>&1 | tee "$out/pytest-device.log" | tail -15
+
+echo "== updates (ours eager/graphed vs SB3) and a whole train run on CUDA vs one CPU core"
+timeout 150 python3 benchmarks/bench_gpu.py --rounds 3 --updates-per-round 300 --train-seeds 5 --train-cpu-seeds 1 \
+  --train-steps 2500 --json "$out/bench-updates.json" 2>&1 | tee "$out/bench-updates.log" | grep -v Warning
+
+echo "== reference methods, 5 seeds on CUDA vs one seed per CPU core, all at once"
+timeout "${METHODS_TIMEOUT:-210}" python3 benchmarks/bench_gpu.py --seeds --skip-sb3 --train-seeds 0 \
+  --methods sac-target cql darc h2o dap dap-u --methods-task "$methods_task" --methods-steps "${METHODS_STEPS:-1500}" \
+  --json "$out/bench-methods.json" 2>&1 | tee "$out/bench-methods.log" | grep -v Warning
+echo "== done"
