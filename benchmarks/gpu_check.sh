@@ -59,6 +59,11 @@ echo "== updates (ours eager/graphed vs SB3) and a whole train run on CUDA vs on
 timeout 150 python3 benchmarks/bench_gpu.py --rounds 3 --updates-per-round 300 --train-seeds 5 --train-cpu-seeds 1 \
   --train-steps 2500 --json "$out/bench-updates.json" 2>&1 | tee "$out/bench-updates.log" | grep -v Warning
 
+echo "== the graph update again with cuBLAS workspaces off: the suspected cause of its corruption is a"
+echo "   per-stream cuBLAS workspace that a captured graph keeps using after torch frees it (pytorch#193402)"
+CUBLAS_WORKSPACE_CONFIG=:0:0 timeout 90 python3 benchmarks/bench_gpu.py --rounds 2 --updates-per-round 300 \
+  --skip-sb3 --train-seeds 0 --json "$out/bench-graph-no-cublas-workspace.json" 2>&1 | grep -v Warning
+
 echo "== reference methods, 5 seeds on CUDA vs one seed per CPU core, all at once"
 timeout "${METHODS_TIMEOUT:-210}" python3 benchmarks/bench_gpu.py --seeds --skip-sb3 --train-seeds 0 \
   --methods sac-target cql darc h2o dap dap-u --methods-task "$methods_task" --methods-steps "${METHODS_STEPS:-1500}" \
