@@ -366,3 +366,26 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
                                                        in_core_suite=task in CORE_SUITE)
                                      for task in (*CORE_SUITE, *candidates)]
     return progress
+
+
+def reference_claims(root: Path = REFERENCE_RUNS_DIR) -> dict[str, list[Any]]:
+    """Per budget published under ``root``, the papers' headline claims checked on its target
+    records (:func:`offdyn_bench.protocol.claims.check_claims`, as ``protocol claims`` does): a row
+    wherever both methods of a claim have published runs on one task; budgets with none are left out."""
+    from offdyn_bench.protocol.claims import check_claims
+
+    if not root.is_dir():
+        raise SubmissionError(f"{root}: not a folder; expected published reference runs "
+                              "(<budget>/<method>/<task>/<seeds>/evaluation.json, as publish-runs writes them)")
+    claims = {}
+    for budget_dir in sorted(path for path in root.glob("*") if path.is_dir()):
+        records = []
+        for path in sorted(budget_dir.glob(f"*/*/*/{EVALUATION_FILE}")):
+            method, task, label, _ = path.relative_to(budget_dir).parts
+            record = read_evaluation_strict(path)
+            check_reference_record(path, record, method, task, label, "target")
+            records.append(record)
+        checks = check_claims(records) if records else []
+        if checks:
+            claims[budget_dir.name] = checks
+    return claims

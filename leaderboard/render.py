@@ -15,6 +15,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from leaderboard.reference_runs import ReferenceProgress
+from offdyn_bench.protocol.claims import ClaimCheck
 from leaderboard.scores import Board, Entry, Interval, Normalization, performance_profile
 from leaderboard.store import write_file_atomic
 from offdyn_bench.errors import OffdynError
@@ -132,9 +133,57 @@ def _progress_html(progress: Mapping[str, Sequence[ReferenceProgress]]) -> str:
     return "".join(parts)
 
 
-def render_markdown(board: Board, progress: Mapping[str, Sequence[ReferenceProgress]] | None = None) -> str:
+_CLAIMS_TITLE = "The papers' headline claims on the reference runs"
+_CLAIMS_HEADERS = ("claim", "paper", "task", "dataset", "better: return (seeds)", "worse: return (seeds)", "verdict",
+                   "P(better > worse)")
+_CLAIMS_TEXT_COLUMNS = 4
+_CLAIMS_NOTE = ("From the published runs above and those of the adapted methods (`offdyn-bench protocol claims` on "
+                "the same records): each claim wherever both of its methods have runs on a task. Returns are mean "
+                "target returns over training seeds; the verdict compares the means (at least twice, or more than, "
+                "as the claim says); P is the probability of improvement over seeds. '(not claimed here)' marks a "
+                "task outside the paper's own settings.")
+
+
+def _claim_cells(check: ClaimCheck) -> list[tuple[str, str | float | None]]:
+    claim = check.claim
+    verdict = ("holds" if check.holds else "does not hold") if check.holds is not None else (
+        f"undefined ({claim.worse} return <= 0)")
+    task = check.task + ("" if check.claimed_on_task else " (not claimed here)")
+    return [(claim.name, claim.name), (claim.paper, claim.paper), (task, task), (check.dataset, check.dataset),
+            (f"{claim.better}: {check.better_return:.1f} ({check.better_seeds})", check.better_return),
+            (f"{claim.worse}: {check.worse_return:.1f} ({check.worse_seeds})", check.worse_return),
+            (verdict, verdict), (f"{check.probability_of_improvement:.2f}", check.probability_of_improvement)]
+
+
+def _claims_markdown(claims: Mapping[str, Sequence[ClaimCheck]]) -> list[str]:
+    lines = []
+    for budget, checks in sorted(claims.items()):
+        lines += ["", f"## {_CLAIMS_TITLE} (`{budget}`)", "", _CLAIMS_NOTE, "",
+                  "| " + " | ".join(_CLAIMS_HEADERS) + " |",
+                  "|" + "---|" * _CLAIMS_TEXT_COLUMNS + "---:|---:|---|---:|"]
+        lines += ["| " + " | ".join(_markdown_cell(text) for text, _ in _claim_cells(check)) + " |" for check in checks]
+    return lines
+
+
+def _claims_html(claims: Mapping[str, Sequence[ClaimCheck]]) -> str:
+    parts = []
+    for budget, checks in sorted(claims.items()):
+        body = "".join("<tr>" + "".join(_cell(text, sort, is_text=index < _CLAIMS_TEXT_COLUMNS or index == 6)
+                                        for index, (text, sort) in enumerate(_claim_cells(check))) + "</tr>"
+                       for check in checks)
+        parts.append(f"<h2>{html.escape(_CLAIMS_TITLE)} ({html.escape(budget)})</h2>"
+                     f'<p class="note">{html.escape(_CLAIMS_NOTE)}</p>'
+                     f'<table class="sortable" id="reference-claims-{html.escape(budget)}"><thead><tr>'
+                     f"{_header_row(_CLAIMS_HEADERS, text_columns=_CLAIMS_TEXT_COLUMNS)}</tr></thead><tbody>{body}"
+                     "</tbody></table>")
+    return "".join(parts)
+
+
+def render_markdown(board: Board, progress: Mapping[str, Sequence[ReferenceProgress]] | None = None,
+                    claims: Mapping[str, Sequence[ClaimCheck]] | None = None) -> str:
     """The README table: method, track, budget, IQM [95% CI], mean, optimality gap, per-task raw means;
-    then, with ``progress``, the reference runs published so far."""
+    then, with ``progress``, the reference runs published so far, and with ``claims`` the papers'
+    claims checked on them."""
     from offdyn_bench import protocol
 
     lines = [f"Protocol {protocol.PROTOCOL_VERSION}; {len(board.entries)} submission(s). Scores are normalized "
@@ -155,6 +204,7 @@ def render_markdown(board: Board, progress: Mapping[str, Sequence[ReferenceProgr
     lines.append("")
     lines.extend(f"- {_markdown_cell(note)}" for note in _normalization_notes(board))
     lines.extend(_progress_markdown(progress or {}))
+    lines.extend(_claims_markdown(claims or {}))
     return "\n".join(lines) + "\n"
 
 
@@ -403,7 +453,8 @@ def _normalization_html(normalizations: Sequence[Normalization], task_count: int
     return f'<ul class="note">{"".join(items)}</ul>' if items else ""
 
 
-def render_html(board: Board, progress: Mapping[str, Sequence[ReferenceProgress]] | None = None) -> str:
+def render_html(board: Board, progress: Mapping[str, Sequence[ReferenceProgress]] | None = None,
+                claims: Mapping[str, Sequence[ClaimCheck]] | None = None) -> str:
     from offdyn_bench import protocol
 
     normalizations = [board.normalizations[b] for b in sorted(board.normalizations)]
@@ -440,6 +491,7 @@ mean in parentheses where the task has both references.</p>
 method on a task drawn uniformly from the scored tasks (ties count 1/2), with its 95% interval.</p>
 {_improvement_tables(board)}
 {_progress_html(progress or {})}
+{_claims_html(claims or {})}
 <h2>Performance profiles</h2>
 {profile_html}
 <h2>Learning curves</h2>
@@ -455,13 +507,14 @@ def build_site(store: Path, out: Path, *, references: Path | None = None,
     """Render ``store`` into ``out/leaderboard.md`` and ``out/index.html``; both written atomically.
     ``reference_runs`` (e.g. the repository's ``leaderboard/reference-runs``) adds the reference runs
     published so far."""
-    from leaderboard.reference_runs import reference_progress
+    from leaderboard.reference_runs import reference_claims, reference_progress
     from leaderboard.scores import score_board
     from leaderboard.store import load_store
 
     board = score_board(load_store(store), references=references)
     progress = reference_progress(reference_runs, references=references) if reference_runs is not None else None
-    markdown, page = render_markdown(board, progress), render_html(board, progress)
+    claims = reference_claims(reference_runs) if reference_runs is not None else None
+    markdown, page = render_markdown(board, progress, claims), render_html(board, progress, claims)
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_file_atomic(out / "leaderboard.md", markdown.encode())

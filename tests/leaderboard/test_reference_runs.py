@@ -610,3 +610,44 @@ def test_a_stored_reference_submission_is_what_its_published_runs_assemble_to(pa
                                     merge_seeds=True, core_suite_only=True, description=stored["method"]["description"]).document
     assert stored == json.loads(json.dumps(assembled))
 
+
+
+def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
+    """The board checks the papers' claims on every published target record, as `protocol claims`
+    does: DAP on halfcheetah-friction-5.0 returns 1147.9 against RL on source's 979.6 over 5 seeds
+    each, 1.17x, so "DAP at least doubles RL on source" does not hold there at lite."""
+    from leaderboard.reference_runs import reference_claims
+    from leaderboard.render import build_site
+    from offdyn_bench.protocol.claims import check_claims
+
+    lite = [json.loads(path.read_text()) for path in PUBLISHED
+            if _parts(path)[0] == "lite" and path.name == "evaluation.json"]
+    board = reference_claims()["lite"]
+    assert [check.to_dict() for check in board] == [check.to_dict() for check in check_claims(lite)]
+    dap = next(c for c in board if c.claim.name == "dap >= 2x rl-on-source" and c.task == "halfcheetah-friction-5.0")
+    assert (dap.better_seeds, dap.worse_seeds, dap.holds) == (5, 5, False)
+    assert dap.better_return == pytest.approx(1147.9, abs=0.05) and dap.worse_return == pytest.approx(979.6, abs=0.05)
+    store = tmp_path / "store"
+    store.mkdir()
+    markdown, page = build_site(store, tmp_path / "site", reference_runs=REFERENCE_RUNS_DIR)
+    assert ("| dap >= 2x rl-on-source | DAP, Section 5.2 | halfcheetah-friction-5.0 | "
+            "offdyn/halfcheetah-friction-5p0/source-policy-v0 | dap: 1147.9 (5) | sac-source: 979.6 (5) | "
+            "does not hold | 0.68 |") in markdown.read_text()
+    assert 'id="reference-claims-lite"' in page.read_text()
+
+
+def test_the_boards_claims_refuse_a_hand_edited_record(tmp_path):
+    from leaderboard.reference_runs import reference_claims
+
+    published = tmp_path / "published"
+    shutil.copytree(REFERENCE_RUNS_DIR / "lite" / "dap", published / "lite" / "dap")
+    shutil.copytree(REFERENCE_RUNS_DIR / "lite" / "sac-source", published / "lite" / "sac-source")
+    assert reference_claims(published)["lite"]
+    edited = published / "lite" / "dap" / "halfcheetah-friction-5.0" / "seed-1" / "evaluation.json"
+    record = json.loads(edited.read_text())
+    record["method"] = "dap-u"  # claimed as another method's run
+    edited.write_text(json.dumps(record))
+    with pytest.raises(SubmissionError, match=r"holds 'dap-u' on 'halfcheetah-friction-5.0', but its folder names 'dap'"):
+        reference_claims(published)
+    (tmp_path / "nothing").mkdir()
+    assert reference_claims(tmp_path / "nothing") == {}  # no budget published: no claims section
