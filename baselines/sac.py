@@ -316,7 +316,9 @@ class GraphedUpdate:
     updates: a graphed run is deterministic, but not equal to an eager one.
 
     Only the newest GraphedUpdate of a process may replay (an older one raises): on an H200, an
-    older graph replayed after a newer one was built computed NaN losses, then faulted.
+    older graph replayed after a newer one was built computed NaN losses, then faulted. Even a lone
+    graph built after other CUDA work went non-finite where the eager update did not, so training
+    runs refuse ``cuda_graph`` (:mod:`baselines.online_sac`); this class stays for finding the cause.
     """
 
     _built: ClassVar[int] = 0
@@ -348,8 +350,8 @@ class GraphedUpdate:
     def __call__(self, batch: Batch) -> Metrics:
         if self.number != GraphedUpdate._built:
             # Seen on an H200 (torch 2.11): once a second GraphedUpdate was built in the process,
-            # the first one's replays read memory the second reused, giving NaN losses and then
-            # illegal memory accesses. Cause not established; one graph per process is safe.
+            # the first one's replays gave NaN losses, then illegal memory accesses. Cause not
+            # established, and a lone graph was seen to fail too: training refuses cuda_graph.
             raise RuntimeError(f"this GraphedUpdate is number {self.number} of {GraphedUpdate._built} built in "
                                "this process, and only the newest may replay: replaying an older one after "
                                "another was built corrupts its updates. Build one GraphedUpdate per process "
