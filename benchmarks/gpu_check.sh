@@ -30,11 +30,14 @@ if [ "${1:-}" = "--prepare" ]; then
      && grep -v -e assets/kitchen_franka -e assets/stls "$record" > "$record.new" && mv "$record.new" "$record" \
      && rm "$OLDPWD/$wheel" && zip -qr -9 "$OLDPWD/$wheel" .)
   rm -rf "$tmp"
-  .venv/bin/python -c "
+  # Installs (or verifies) the dataset, its messages on stderr, and prints its id.
+  dataset=$(.venv/bin/python -c "
+import sys
 from offdyn_bench.datasets.ensure import ensure_dataset
 from offdyn_bench.protocol import official_dataset
-ensure_dataset(official_dataset('$methods_task', 'offline-target'), progress=False, echo=print)"
-  dataset=$(.venv/bin/python -c "from offdyn_bench.protocol import official_dataset; print(official_dataset('$methods_task', 'offline-target'))")
+dataset = official_dataset('$methods_task', 'offline-target')
+ensure_dataset(dataset, progress=False, echo=lambda line: print(line, file=sys.stderr))
+print(dataset)")
   mkdir -p ".device-data/$(dirname "$dataset")"
   cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" ".device-data/$(dirname "$dataset")/"
   du -sh .whl .device-data

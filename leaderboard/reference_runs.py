@@ -24,7 +24,7 @@ import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from baselines.limits import FINITE
 from baselines.run_folder import TrainingCompute, read_training_compute
@@ -33,6 +33,9 @@ from leaderboard.store import write_file_atomic
 from leaderboard.submission import SubmissionError
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.sweep.runs import EVALUATION_FILE, SOURCE_EVALUATION_FILE, seed_label
+
+if TYPE_CHECKING:
+    from offdyn_bench.protocol.claims import ClaimCheck
 
 REFERENCE_RUNS_DIR = Path(__file__).resolve().parent / "reference-runs"
 RECORD_FILES = {EVALUATION_FILE: "target", SOURCE_EVALUATION_FILE: "source"}
@@ -328,6 +331,22 @@ class ReferenceProgress:
         return admit(self.rl_on_source) if self.rl_on_source is not None else None
 
 
+def _published_budgets(root: Path) -> list[Path]:
+    """The budget folders of published reference runs under ``root``, which must be a folder."""
+    if not root.is_dir():
+        raise SubmissionError(f"{root}: not a folder; expected published reference runs "
+                              "(<budget>/<method>/<task>/<seeds>/evaluation.json, as publish-runs writes them)")
+    return sorted(path for path in root.glob("*") if path.is_dir())
+
+
+def _read_published(budget_dir: Path, path: Path) -> dict[str, Any]:
+    """A published record, checked again where it is read: a hand edit is refused, not rendered."""
+    method, task, label, name = path.relative_to(budget_dir).parts
+    record = read_evaluation_strict(path)
+    check_reference_record(path, record, method, task, label, RECORD_FILES[name])
+    return record
+
+
 def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | None = None
                        ) -> dict[str, list[ReferenceProgress]]:
     """Per budget published under ``root``, a row for every core-suite task (empty where nothing is
@@ -337,22 +356,12 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
     from offdyn_bench.protocol.gap import measure_gaps
     from offdyn_bench.protocol.scoring import seed_means
 
-    if not root.is_dir():
-        raise SubmissionError(f"{root}: not a folder; expected published reference runs "
-                              "(<budget>/<method>/<task>/<seeds>/evaluation.json, as publish-runs writes them)")
-
-    def read_checked(path: Path) -> dict[str, Any]:
-        # Published files are checked again where they are read: a hand edit is refused, not rendered.
-        method, task, label, name = path.relative_to(budget_dir).parts
-        record = read_evaluation_strict(path)
-        check_reference_record(path, record, method, task, label, RECORD_FILES[name])
-        return record
-
     progress = {}
-    for budget_dir in sorted(path for path in root.glob("*") if path.is_dir()):
-        source_records = [read_checked(path) for path in sorted(budget_dir.glob("sac-source/*/*/evaluation*.json"))
+    for budget_dir in _published_budgets(root):
+        source_records = [_read_published(budget_dir, path) for path in sorted(budget_dir.glob("sac-source/*/*/evaluation*.json"))
                           if path.name in RECORD_FILES]
-        oracle_records = [read_checked(path) for path in sorted(budget_dir.glob(f"sac-target/*/*/{EVALUATION_FILE}"))]
+        oracle_records = [_read_published(budget_dir, path)
+                          for path in sorted(budget_dir.glob(f"sac-target/*/*/{EVALUATION_FILE}"))]
         # The oracle runs are a candidate's oracle where the reference file records none, as in
         # `protocol admission`: the board's test is the command's, on the same records.
         gaps = {gap.task: gap for gap in measure_gaps(source_records + oracle_records,
@@ -368,23 +377,15 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
     return progress
 
 
-def reference_claims(root: Path = REFERENCE_RUNS_DIR) -> dict[str, list[Any]]:
+def reference_claims(root: Path = REFERENCE_RUNS_DIR) -> dict[str, list[ClaimCheck]]:
     """Per budget published under ``root``, the papers' headline claims checked on its target
     records (:func:`offdyn_bench.protocol.claims.check_claims`, as ``protocol claims`` does): a row
     wherever both methods of a claim have published runs on one task; budgets with none are left out."""
     from offdyn_bench.protocol.claims import check_claims
 
-    if not root.is_dir():
-        raise SubmissionError(f"{root}: not a folder; expected published reference runs "
-                              "(<budget>/<method>/<task>/<seeds>/evaluation.json, as publish-runs writes them)")
     claims = {}
-    for budget_dir in sorted(path for path in root.glob("*") if path.is_dir()):
-        records = []
-        for path in sorted(budget_dir.glob(f"*/*/*/{EVALUATION_FILE}")):
-            method, task, label, _ = path.relative_to(budget_dir).parts
-            record = read_evaluation_strict(path)
-            check_reference_record(path, record, method, task, label, "target")
-            records.append(record)
+    for budget_dir in _published_budgets(root):
+        records = [_read_published(budget_dir, path) for path in sorted(budget_dir.glob(f"*/*/*/{EVALUATION_FILE}"))]
         checks = check_claims(records) if records else []
         if checks:
             claims[budget_dir.name] = checks

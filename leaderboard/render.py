@@ -13,12 +13,15 @@ import io
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from leaderboard.reference_runs import ReferenceProgress
-from offdyn_bench.protocol.claims import ClaimCheck
 from leaderboard.scores import Board, Entry, Interval, Normalization, performance_profile
 from leaderboard.store import write_file_atomic
 from offdyn_bench.errors import OffdynError
+
+if TYPE_CHECKING:  # annotations only: the claims module is imported where claims are checked
+    from offdyn_bench.protocol.claims import ClaimCheck
 
 
 def _number(value: float, digits: int = 1) -> str:
@@ -145,9 +148,7 @@ _CLAIMS_NOTE = ("From the published runs above and those of the adapted methods 
 
 
 def _claim_cells(check: ClaimCheck) -> list[tuple[str, str | float | None]]:
-    claim = check.claim
-    verdict = ("holds" if check.holds else "does not hold") if check.holds is not None else (
-        f"undefined ({claim.worse} return <= 0)")
+    claim, verdict = check.claim, check.verdict_text
     task = check.task + ("" if check.claimed_on_task else " (not claimed here)")
     return [(claim.name, claim.name), (claim.paper, claim.paper), (task, task), (check.dataset, check.dataset),
             (f"{claim.better}: {check.better_return:.1f} ({check.better_seeds})", check.better_return),

@@ -84,6 +84,13 @@ class ClaimCheck:
     probability_of_improvement: float
     claimed_on_task: bool
 
+    @property
+    def verdict_text(self) -> str:
+        """``holds``, ``does not hold``, or why there is no verdict."""
+        if self.holds is None:
+            return f"undefined ({self.claim.worse} return <= 0)"
+        return "holds" if self.holds else "does not hold"
+
     def to_dict(self) -> dict[str, Any]:
         return {"claim": self.claim.name, "paper": self.claim.paper, "task": self.task, "dataset": self.dataset,
                 "claimed_on_task": self.claimed_on_task, self.claim.better: self.better_return,
@@ -156,11 +163,9 @@ def claims_markdown(checks: Sequence[ClaimCheck]) -> str:
                   f"| task | dataset | {claim.better} | {claim.worse} | verdict | P({claim.better} > {claim.worse}) |",
                   "|---|---|---:|---:|---|---:|"]
         for c in rows:
-            verdict = ("holds" if c.holds else "does not hold") if c.holds is not None else (
-                f"undefined ({claim.worse} return <= 0)")
             where = "" if c.claimed_on_task else " (not claimed here)"
             lines.append(f"| {c.task}{where} | {c.dataset} | {c.better_return:.1f} ({_seeds(c.better_seeds)}) | "
-                         f"{c.worse_return:.1f} ({_seeds(c.worse_seeds)}) | {verdict} | "
+                         f"{c.worse_return:.1f} ({_seeds(c.worse_seeds)}) | {c.verdict_text} | "
                          f"{c.probability_of_improvement:.2f} |")
         claimed = [c for c in rows if c.claimed_on_task and c.holds is not None]
         lines += ["", f"Where the paper claims it: holds on {sum(bool(c.holds) for c in claimed)} of "
