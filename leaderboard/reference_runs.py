@@ -32,7 +32,8 @@ from leaderboard.assemble import METRICS_FILE, read_evaluation_strict, read_lear
 from leaderboard.store import write_file_atomic
 from leaderboard.submission import SubmissionError
 from offdyn_bench.errors import OffdynError
-from offdyn_bench.sweep.runs import EVALUATION_FILE, SOURCE_EVALUATION_FILE, seed_label
+from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
+from offdyn_bench.sweep.runs import EVALUATION_FILE, SOURCE_EVALUATION_FILE, dataset_tag, seed_label
 
 if TYPE_CHECKING:
     from offdyn_bench.protocol.claims import ClaimCheck
@@ -86,8 +87,13 @@ def check_reference_record(path: Path, record: dict[str, Any], method: str, task
     if not isinstance(seeds, list) or not seeds or not all(isinstance(s, dict) for s in seeds):
         raise fail("no per-seed returns")
     numbers = [s.get("seed") for s in seeds]
-    if not all(isinstance(n, int) for n in numbers) or seed_label(sorted(numbers)) != label:
+    if not all(isinstance(n, int) for n in numbers) or seed_label(sorted(numbers)) != label.rpartition(".")[2]:
         raise fail(f"seeds {numbers}; its folder {label!r} names others")
+    tag = label.rpartition(".")[0]
+    used = dataset_label(record)
+    if tag and (used == NO_DATASET or dataset_tag(used) != tag):
+        trained = "on no target dataset" if used == NO_DATASET else f"on dataset {used!r}"
+        raise fail(f"trained {trained}; its folder {label!r} names {tag!r}")
     for entry in seeds:
         returns = entry.get("returns")
         if not isinstance(returns, list) or len(returns) < EVAL_EPISODES:

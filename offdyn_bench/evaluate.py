@@ -45,7 +45,7 @@ from offdyn_bench.protocol.definition import (
     check_method_on_track,
     get_budget,
     get_track,
-    official_dataset,
+    official_datasets,
     official_source_dataset,
     track_of_method,
 )
@@ -317,14 +317,16 @@ def _conformance(loaded: LoadedAgents, task: str, track: str | None, budget: str
         notes.append("no track given (--track)")
     if episodes != EVAL_EPISODES:
         notes.append(f"{episodes} episodes per seed; the protocol evaluates {EVAL_EPISODES}")
-    for kind, provenance, official_of in (("dataset", loaded.dataset, official_dataset),
-                                          ("source dataset", loaded.source_dataset, official_source_dataset)):
+    source_official = official_source_dataset(task, track) if track is not None else None
+    for kind, provenance, official in (
+            ("dataset", loaded.dataset, official_datasets(task, track) if track is not None else ()),
+            ("source dataset", loaded.source_dataset, (source_official,) if source_official is not None else ())):
         if track is None or provenance is None:
             continue
-        official = official_of(task, track)
         used = provenance.get("dataset_id") or provenance.get("spec")
-        if official is not None and used != official:
-            notes.append(f"trained on {kind} {used!r}; the track's official {kind} is {official!r}")
+        if official and used not in official:
+            notes.append(f"trained on {kind} {used!r}; the track's official {kind} is "
+                         + " or ".join(repr(name) for name in official))
     return track, budget, notes
 
 

@@ -405,6 +405,11 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 method_runs = [run for run in runs if run.method == method]
                 if any(records[run.run_id].status != "done" for run in method_runs):
                     continue
+                if any(run.dataset_tag is not None for run in method_runs):
+                    # Merging a task's runs would pool datasets; their records are published run by run.
+                    submissions[method] = [f"it trains on {len(spec.datasets)} target dataset qualities per task "
+                                           f"(datasets: {', '.join(spec.datasets)}); a submission holds one"]
+                    continue
                 folder = write_submission_folder(spec, method, method_runs)
                 merged = [json.loads(path.read_text()) for path in sorted(folder.glob("*/evaluation.json"))]
                 reasons = [reason for record in merged for reason in leaderboard_blockers(spec, record)]
@@ -456,6 +461,9 @@ def summary_lines(report: SweepReport) -> list[str]:
             continue
         folder = report.spec.out / SUBMISSION_DIR / method
         reasons = report.submissions[method]
+        if reasons and not folder.is_dir():
+            lines.append(f"{method}: not a leaderboard submission: " + "; ".join(reasons))
+            continue
         if reasons:
             lines.append(f"{method}: merged evaluations in {folder}; not a leaderboard submission: "
                          + "; ".join(reasons))

@@ -9,6 +9,7 @@ here, all of it in one error, before any run starts.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -40,7 +41,8 @@ class Run:
     steps: int
     evaluation_episodes: int
     official_dataset: str | None = None
-    """The track's official dataset the run trains on (None: no dataset, or the spec's own)."""
+    """The manifest dataset the run trains on, which the sweep installs before any run starts: the
+    track's official one, or a ``datasets`` quality's (None: no dataset, or the spec's ``dataset``)."""
     official_source_dataset: str | None = None
     """On the offline-source tracks, the task's official source dataset the run trains on."""
     settings: Mapping[str, Any] = dataclasses.field(default_factory=dict)
@@ -51,6 +53,9 @@ class Run:
     method on a task whose source an earlier task of the sweep has: ``train_args`` and
     ``settings`` are then that run's, and ``evaluate`` scores its policy on this run's task into
     ``folder``); None: the run trains in ``folder``."""
+    dataset_tag: str | None = None
+    """The target dataset a run of a ``datasets`` sweep trains on (``medium-replay-v0``), named in
+    its folder and id; None for the other runs."""
     source_evaluate_args: tuple[str, ...] = ()
     """For a source-only method (sac-source), the arguments of ``offdyn-bench`` that score the same
     policy in the task's source (``evaluate --side source``, into ``evaluation-source.json``): with
@@ -63,12 +68,23 @@ class Run:
 
     @property
     def run_id(self) -> str:
-        """``method/task/seed-S`` (or ``seeds-S-E``): the run's name in the state file and its folder."""
-        return f"{self.method}/{self.task}/{seed_label(self.seeds)}"
+        """``method/task/seed-S`` (or ``seeds-S-E``, ``medium-v0.seed-S``): the run's name in the
+        state file and its folder."""
+        return f"{self.method}/{self.task}/{run_label(self.seeds, self.dataset_tag)}"
 
 
 def seed_label(seeds: Sequence[int]) -> str:
     return f"seed-{seeds[0]}" if len(seeds) == 1 else f"seeds-{seeds[0]}-{seeds[-1]}"
+
+
+def run_label(seeds: Sequence[int], dataset_tag: str | None = None) -> str:
+    """A run folder's name: its seeds, after the dataset it trained on where a sweep runs several."""
+    return seed_label(seeds) if dataset_tag is None else f"{dataset_tag}.{seed_label(seeds)}"
+
+
+def dataset_tag(dataset_id: str) -> str:
+    """``offdyn/halfcheetah-h2o-gravity-2p0/medium-replay-v0`` -> ``medium-replay-v0``."""
+    return dataset_id.rsplit("/", 1)[-1]
 
 
 def task_names(spec: SweepSpec) -> tuple[str, ...]:
@@ -155,7 +171,12 @@ def expand(spec: SweepSpec) -> list[Run]:
     if refused:
         raise SpecError(f"{where}: the protocol refuses {len(refused)} method(s) on track {spec.track!r}: "
                         + "; ".join(refused) + "; remove them or run them in a sweep of their own track")
-    if spec.dataset is None and any(needs_dataset.values()):
+    # Per task, the datasets its data-hungry methods train on: (id, folder tag); a None id is the
+    # trainer's own choice (the spec's dataset, or the track's official one).
+    datasets_of: dict[str, list[tuple[str | None, str | None]]] = {}
+    if spec.datasets and any(needs_dataset.values()):
+        datasets_of = _quality_datasets(spec, tasks)
+    elif spec.dataset is None and any(needs_dataset.values()):
         from offdyn_bench.datasets import read_manifest
 
         manifest = read_manifest()
@@ -172,18 +193,25 @@ def expand(spec: SweepSpec) -> list[Run]:
         # with the same source score the first one's policy (the same bytes training would give).
         trained: dict[tuple[str, tuple[int, ...]], Run] = {}
         for task in tasks:
-            for seeds in seed_groups(spec.seeds, spec.seeds_per_run):
-                folder = root / RUNS_DIR / method / task / seed_label(seeds)
-                dataset = official_dataset(task, spec.track) if needs_dataset[method] and spec.dataset is None \
-                    else (spec.dataset if needs_dataset[method] else None)
+            choices = datasets_of.get(task, [(None, None)]) if needs_dataset[method] else [(None, None)]
+            for (chosen, tag), seeds in itertools.product(choices, seed_groups(spec.seeds, spec.seeds_per_run)):
+                label = run_label(seeds, tag)
+                folder = root / RUNS_DIR / method / task / label
+                if not needs_dataset[method]:
+                    dataset = None
+                elif chosen is not None:
+                    dataset = chosen
+                else:
+                    dataset = official_dataset(task, spec.track) if spec.dataset is None else spec.dataset
                 source = official_source_dataset(task, spec.track) if needs_source_dataset[method] else None
-                log = root / LOGS_DIR / method / task / f"{seed_label(seeds)}.log"
+                log = root / LOGS_DIR / method / task / f"{label}.log"
+                train_dataset = chosen if chosen is not None else (spec.dataset if needs_dataset[method] else None)
                 run = Run(method=method, task=task, seeds=seeds, folder=folder, log=log,
-                          train_args=tuple(_train_args(spec, method, task, seeds, folder, needs_dataset[method])),
+                          train_args=tuple(_train_args(spec, method, task, seeds, folder, train_dataset)),
                           evaluate_args=tuple(_evaluate_args(spec, folder)),
                           steps=steps, evaluation_episodes=spec.evaluation_episodes,
                           official_dataset=dataset if spec.dataset is None else None,
-                          official_source_dataset=source,
+                          official_source_dataset=source, dataset_tag=tag,
                           settings={"algo": method, "task": task, "steps": steps, "seeds": list(seeds),
                                     "dataset": dataset, "config": configs[method]}
                           | ({"source_dataset": source} if source is not None else {}))
@@ -201,14 +229,43 @@ def expand(spec: SweepSpec) -> list[Run]:
     return runs
 
 
+def _quality_datasets(spec: SweepSpec, tasks: Sequence[str]) -> dict[str, list[tuple[str | None, str | None]]]:
+    """Per task, the Minari id of each of the spec's ``datasets`` qualities and its folder tag; a
+    :class:`SpecError` naming every quality a task lacks or the manifest does not list."""
+    from offdyn_bench.datasets import read_manifest
+    from offdyn_bench.datasets.recipes import QUALITIES, dataset_id, qualities_of
+    from offdyn_bench.tasks import get_task
+
+    unknown = [quality for quality in spec.datasets if quality not in QUALITIES]
+    if unknown:
+        raise SpecError(f"{spec.source}: datasets: unknown quality {unknown[0]!r}; expected qualities from "
+                        f"{', '.join(QUALITIES)} (for one dataset by id or file, use dataset)")
+    manifest = read_manifest()
+    lacking, chosen = [], {}
+    for task in tasks:
+        have = qualities_of(get_task(task))
+        chosen[task] = []
+        for quality in spec.datasets:
+            if quality not in have:
+                lacking.append(f"{task} has no {quality} dataset (its qualities: {', '.join(have)})")
+                continue
+            identifier = dataset_id(task, quality)
+            if identifier not in manifest:
+                lacking.append(f"{identifier} is not in the manifest")
+            chosen[task].append((identifier, dataset_tag(identifier)))
+    if lacking:
+        raise SpecError(f"{spec.source}: datasets: " + "; ".join(lacking))
+    return chosen
+
+
 def _train_args(spec: SweepSpec, method: str, task: str, seeds: tuple[int, ...], folder: Path,
-                needs_dataset: bool) -> list[str]:
+                dataset: str | None) -> list[str]:
     args = ["train", method, "--task", task, "--track", spec.track]
     args += ["--budget", spec.budget] if spec.budget is not None else ["--steps", str(spec.steps)]
     args += ["--seed", str(seeds[0]), "--n-seeds", str(len(seeds)), "--device", spec.device,
              "--threads", str(max(1, int(spec.cpus_per_run))), "--no-progress"]
-    if needs_dataset and spec.dataset is not None:
-        args += ["--dataset", spec.dataset]
+    if dataset is not None:
+        args += ["--dataset", dataset]
     for option, value in (("--eval-every", spec.training.eval_every),
                           ("--eval-episodes", spec.training.eval_episodes),
                           ("--checkpoint-every", spec.training.checkpoint_every)):

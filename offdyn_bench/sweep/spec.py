@@ -60,6 +60,10 @@ class SweepSpec:
     device: str = "cpu"
     dataset: str | None = None
     """``--dataset`` for methods that need target data (default: the track's official dataset)."""
+    datasets: tuple[str, ...] = ()
+    """Target dataset qualities (``medium``, ``medium-replay``, ...): each method that needs target
+    data runs once per quality on every task, on that task's dataset of it (the H2O paper's Table 1
+    grid); the run's folder names the dataset (``medium-replay-v0.seed-0``). Empty: one dataset."""
     evaluation_episodes: int = 20
     training: TrainingOptions = TrainingOptions()
     overrides: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict)
@@ -79,7 +83,7 @@ class SweepSpec:
 
 
 _KEYS = ("methods", "tasks", "seeds", "track", "budget", "steps", "out", "seeds_per_run", "device", "dataset",
-         "evaluation_episodes", "training", "overrides", "max_retries", "cpus_per_run", "gpus_per_run",
+         "datasets", "evaluation_episodes", "training", "overrides", "max_retries", "cpus_per_run", "gpus_per_run",
          "ray_address")
 _REQUIRED = ("methods", "tasks", "seeds", "track", "out")
 _TRAINING_KEYS = tuple(field.name for field in dataclasses.fields(TrainingOptions))
@@ -200,6 +204,17 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
                               "Minari id (leave it out for the track's official dataset)")
     if dataset is not None:
         dataset = _absolute_dataset(dataset)
+    datasets = data.get("datasets")
+    if datasets is not None:
+        if isinstance(datasets, str):
+            datasets = [datasets]
+        if not isinstance(datasets, list) or not datasets or not all(isinstance(d, str) and d for d in datasets):
+            raise fail("datasets", "a non-empty list of dataset qualities, e.g. [medium, medium-replay, medium-expert]")
+        if len(set(datasets)) != len(datasets):
+            raise fail("datasets", "each quality once")
+        if dataset is not None:
+            raise SpecError(f"{source}: give at most one of dataset (one dataset for every run) and datasets "
+                            "(a run per dataset quality)")
     evaluation_episodes = _int_key(data, "evaluation_episodes", 20, 1, 1000, fail)
 
     training_data = data.get("training") or {}
@@ -240,6 +255,7 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
                      # working folders (on a cluster, out must be on a filesystem every node shares).
                      seeds=seeds, track=track, budget=budget, steps=steps, out=Path(out_value).absolute(),
                      seeds_per_run=seeds_per_run, device=device, dataset=dataset,
+                     datasets=tuple(datasets or ()),
                      evaluation_episodes=evaluation_episodes, training=training, overrides=overrides,
                      max_retries=max_retries, cpus_per_run=cpus_per_run, gpus_per_run=gpus_per_run,
                      ray_address=ray_address)

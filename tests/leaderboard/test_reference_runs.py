@@ -651,3 +651,21 @@ def test_the_boards_claims_refuse_a_hand_edited_record(tmp_path):
         reference_claims(published)
     (tmp_path / "nothing").mkdir()
     assert reference_claims(tmp_path / "nothing") == {}  # no budget published: no claims section
+
+
+def test_a_folder_that_names_a_dataset_must_hold_a_record_trained_on_it(tmp_path):
+    """A ``datasets`` sweep names each run's dataset in its folder (``medium-v0.seed-0``): publishing
+    takes that name at its word only where the record trained on that dataset."""
+    dap = REFERENCE_RUNS_DIR / "lite" / "dap" / "halfcheetah-friction-5.0" / "seed-0" / "evaluation.json"
+    record = json.loads(dap.read_text())
+    assert record["dataset"]["dataset_id"] == "offdyn/halfcheetah-friction-5p0/source-policy-v0"
+    check_reference_record(dap, record, "dap", "halfcheetah-friction-5.0", "source-policy-v0.seed-0", "target")
+    with pytest.raises(SubmissionError, match=r"trained on dataset 'offdyn/halfcheetah-friction-5p0/source-policy-v0'; "
+                                              r"its folder 'medium-v0.seed-0' names 'medium-v0'"):
+        check_reference_record(dap, record, "dap", "halfcheetah-friction-5.0", "medium-v0.seed-0", "target")
+    with pytest.raises(SubmissionError, match=r"seeds \[0\]; its folder 'source-policy-v0.seed-1' names others"):
+        check_reference_record(dap, record, "dap", "halfcheetah-friction-5.0", "source-policy-v0.seed-1", "target")
+    rl = REFERENCE_RUNS_DIR / "lite" / "sac-source" / "halfcheetah-friction-5.0" / "seed-0" / "evaluation.json"
+    with pytest.raises(SubmissionError, match=r"trained on no target dataset; its folder 'medium-v0.seed-0' names 'medium-v0'"):
+        check_reference_record(rl, json.loads(rl.read_text()), "sac-source", "halfcheetah-friction-5.0",
+                               "medium-v0.seed-0", "target")

@@ -264,3 +264,39 @@ def test_protocol_show_prints_each_core_task_reference_with_the_oracle_seed_mean
     assert lines[protocol.CORE_SUITE[2]].endswith("references: none yet")
     shown = json.loads(CliRunner().invoke(app, ["protocol", "show", "--json"]).output)
     assert shown["references"][first] == ["oracle/lite", "random"]
+
+
+def test_each_h2o_table_dataset_is_official_on_the_h2o_settings_medium_the_default():
+    """H2O's Table 1 reports every method on medium, medium-replay and medium-expert: on its
+    settings each is an official dataset of the offline-target track; other tasks keep one."""
+    from offdyn_bench.protocol import official_datasets
+
+    slug = "offdyn/walker2d-h2o-friction-0p3"
+    assert official_datasets("walker2d-h2o-friction-0.3", "offline-target") == (
+        f"{slug}/medium-v0", f"{slug}/medium-replay-v0", f"{slug}/medium-expert-v0")
+    assert official_dataset("walker2d-h2o-friction-0.3", "offline-target") == f"{slug}/medium-v0"
+    assert official_datasets("hopper-gravity-0.5", "offline-target") == ("offdyn/hopper-gravity-0p5/source-policy-v0",)
+    assert official_datasets("walker2d-h2o-friction-0.3", "online-target") == ()
+    # Without the source simulator the H2O qualities are no setting of the paper's: one dataset.
+    assert official_datasets("walker2d-h2o-friction-0.3", "offline-source-offline-target") == (
+        f"{slug}/source-policy-v0",)
+    assert not set(official_datasets("walker2d-h2o-friction-0.3", "offline-target")) & {
+        official_dataset(task, "offline-target") for task in CORE_SUITE}
+
+
+@pytest.mark.parametrize("used, conformant", [
+    ("offdyn/halfcheetah-h2o-gravity-2p0/medium-replay-v0", True),
+    ("offdyn/halfcheetah-h2o-gravity-2p0/medium-expert-v0", True),
+    ("offdyn/halfcheetah-h2o-gravity-2p0/random-v0", False),
+])
+def test_a_record_on_any_h2o_table_dataset_is_a_protocol_result(used, conformant):
+    from offdyn_bench.evaluate import LoadedAgents, _conformance
+
+    loaded = LoadedAgents(agents=[], description={}, method="h2o", task="halfcheetah-h2o-gravity-2.0",
+                          steps=100_000, dataset={"dataset_id": used})
+    track, budget, notes = _conformance(loaded, "halfcheetah-h2o-gravity-2.0", "offline-target", None, EVAL_EPISODES)
+    assert (track, budget) == ("offline-target", "lite") and (not notes) == conformant
+    if not conformant:
+        slug = "offdyn/halfcheetah-h2o-gravity-2p0"
+        assert notes == [f"trained on dataset {used!r}; the track's official dataset is '{slug}/medium-v0' or "
+                         f"'{slug}/medium-replay-v0' or '{slug}/medium-expert-v0'"]

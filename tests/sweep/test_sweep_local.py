@@ -352,3 +352,25 @@ def test_before_any_training_finishes_the_eta_takes_the_running_ones_pace():
     # Half of one is left, and all of the other.
     assert progress.line(records, capacity=1).endswith("ETA 50m00s")
     assert progress.line(records, capacity=2).endswith("ETA 25m00s")
+
+
+def test_a_datasets_sweep_trains_one_run_per_quality_and_submits_none(tmp_path, tiny_spec, monkeypatch):
+    """Two qualities, one seed: two trainings, each on its own dataset, each folder naming it; the
+    records are kept run by run (a merged submission would pool the datasets)."""
+    monkeypatch.delenv("OFFDYN_REMOTE")  # the sweep rebuilds both datasets from their recipes
+    spec = parse_spec(tiny_spec(tmp_path / "out", methods=["cql"], tasks=["hopper-gravity-0.5"], seeds=1, steps=60,
+                                datasets=["random", "source-policy"],
+                                training={"eval_episodes": 1, "checkpoint_every": 30},
+                                overrides={"cql": {"sac.hidden_sizes": [16, 16], "sac.batch_size": 16,
+                                                   "n_action_samples": 2}}), source="tiny")
+    report = run_sweep(spec, workers=2, echo=None)
+    slug = "offdyn/hopper-gravity-0p5"
+    assert [run.run_id for run in report.runs] == ["cql/hopper-gravity-0.5/random-v0.seed-0",
+                                                   "cql/hopper-gravity-0.5/source-policy-v0.seed-0"]
+    for run, quality in zip(report.runs, ("random", "source-policy")):
+        record = json.loads((run.folder / "evaluation.json").read_text())
+        assert record["dataset"]["dataset_id"] == f"{slug}/{quality}-v0"
+        assert json.loads((run.folder / "config.json").read_text())["dataset"] == f"{slug}/{quality}-v0"
+    assert not (spec.out / "submission").exists()
+    text = "\n".join(summary_lines(report))
+    assert "cql: not a leaderboard submission: it trains on 2 target dataset qualities per task" in text

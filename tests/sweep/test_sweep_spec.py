@@ -235,3 +235,48 @@ def test_every_shipped_spec_expands(name, tmp_path):
     runs = expand(load_spec(path, out=tmp_path / "out"))
     assert runs and all(run.folder.is_relative_to(tmp_path / "out") for run in runs)
     assert not (tmp_path / "out").exists()  # expanding writes nothing
+
+
+H2O_TASK = "halfcheetah-h2o-gravity-2.0"
+
+
+def test_datasets_runs_each_data_method_once_per_quality_and_names_the_dataset_in_its_folder(tmp_path, tiny_spec):
+    """The H2O paper's Table 1 grid: every data-hungry method on each quality, the reference point
+    (which takes no target data) once per task."""
+    spec = parse_spec(tiny_spec(tmp_path / "out", methods=["h2o", "sac-source"], tasks=[H2O_TASK], seeds=2,
+                                steps=None, budget="lite", overrides={},
+                                datasets=["medium", "medium-replay", "medium-expert"]))
+    runs = expand(spec)
+    h2o = [run for run in runs if run.method == "h2o"]
+    assert [run.run_id for run in h2o] == [f"h2o/{H2O_TASK}/{quality}-v0.seed-{seed}"
+                                           for quality in ("medium", "medium-replay", "medium-expert")
+                                           for seed in (0, 1)]
+    for run in h2o:
+        quality_id = f"offdyn/halfcheetah-h2o-gravity-2p0/{run.dataset_tag}"
+        assert run.folder.name == f"{run.dataset_tag}.seed-{run.seeds[0]}"
+        assert run.train_args[run.train_args.index("--dataset") + 1] == quality_id
+        assert run.settings["dataset"] == quality_id and run.official_dataset == quality_id
+    # Three runs on one task and seed, three folders: nothing is shared or overwritten.
+    assert len({run.folder for run in h2o}) == len(h2o)
+    assert [run.run_id for run in runs if run.method == "sac-source"] == [f"sac-source/{H2O_TASK}/seed-0",
+                                                                          f"sac-source/{H2O_TASK}/seed-1"]
+
+
+@pytest.mark.parametrize("changes, expected", [
+    ({"datasets": []}, "datasets: got []; expected a non-empty list of dataset qualities"),
+    ({"datasets": ["medium", "medium"]}, "datasets: got [\"medium\", \"medium\"]; expected each quality once"),
+    ({"datasets": [3]}, "datasets: got [3]; expected a non-empty list of dataset qualities"),
+    ({"datasets": ["medium"], "dataset": "collect:random:500"}, "give at most one of dataset"),
+])
+def test_bad_datasets_are_one_line(tmp_path, tiny_spec, changes, expected):
+    assert expected in _refused(tmp_path, tiny_spec(tmp_path / "out", methods=["h2o"], overrides={}, **changes))
+
+
+def test_datasets_a_task_lacks_are_all_named_at_expansion(tmp_path, tiny_spec):
+    line = _refused(tmp_path, tiny_spec(tmp_path / "out", methods=["h2o"], tasks=[H2O_TASK, "hopper-gravity-0.5"],
+                                        overrides={}, datasets=["medium", "expert"]))
+    assert "datasets: unknown quality 'expert'; expected qualities from random, source-policy" in line
+    line = _refused(tmp_path, tiny_spec(tmp_path / "out", methods=["h2o"], tasks=[H2O_TASK, "hopper-gravity-0.5"],
+                                        overrides={}, datasets=["medium", "random"]))
+    assert "hopper-gravity-0.5 has no medium dataset (its qualities: random, source-policy, source)" in line
+    assert H2O_TASK not in line  # it has both
