@@ -197,15 +197,17 @@ def expand(spec: SweepSpec) -> list[Run]:
             for (chosen, tag), seeds in itertools.product(choices, seed_groups(spec.seeds, spec.seeds_per_run)):
                 label = run_label(seeds, tag)
                 folder = root / RUNS_DIR / method / task / label
+                # train_dataset: what --dataset says (None: the trainer's default, the official one);
+                # dataset: what the run trains on, as its config.json records it.
                 if not needs_dataset[method]:
-                    dataset = None
+                    train_dataset = dataset = None
                 elif chosen is not None:
-                    dataset = chosen
+                    train_dataset = dataset = chosen
                 else:
-                    dataset = official_dataset(task, spec.track) if spec.dataset is None else spec.dataset
+                    train_dataset = spec.dataset
+                    dataset = spec.dataset if spec.dataset is not None else official_dataset(task, spec.track)
                 source = official_source_dataset(task, spec.track) if needs_source_dataset[method] else None
                 log = root / LOGS_DIR / method / task / f"{label}.log"
-                train_dataset = chosen if chosen is not None else (spec.dataset if needs_dataset[method] else None)
                 run = Run(method=method, task=task, seeds=seeds, folder=folder, log=log,
                           train_args=tuple(_train_args(spec, method, task, seeds, folder, train_dataset)),
                           evaluate_args=tuple(_evaluate_args(spec, folder)),
