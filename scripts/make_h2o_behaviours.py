@@ -23,7 +23,7 @@ import json
 import pathlib
 
 from offdyn_bench.datasets.recipes import MEDIUM_FRACTION, REFERENCE_EPISODES, REFERENCE_SEED, REPO_ROOT, is_h2o_setting
-from offdyn_bench.datasets.training_data import export_h2o_behaviours, train_keeping_checkpoints
+from offdyn_bench.datasets.training_data import export_h2o_behaviours, size_replay_recipes, train_keeping_checkpoints
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TASKS
 
@@ -51,13 +51,17 @@ def main() -> None:
         kept = train_keeping_checkpoints(pair.name, steps=args.steps, checkpoint_every=every, out=out, seed=args.seed)
         summary = export_h2o_behaviours(out / "run", kept, pair, out_root=args.out_root, episodes=REFERENCE_EPISODES,
                                         first_seed=REFERENCE_SEED, fraction=MEDIUM_FRACTION)
+        # medium-replay is what the run stored up to the medium step: this checkout's recipes take
+        # that size now (they read the policy where this checkout ships it).
+        sized = size_replay_recipes(args.robot) if args.out_root.resolve() == REPO_ROOT else []
     except OffdynError as error:
         raise SystemExit(f"error: {error}") from None
     level = summary["level"]
     print(json.dumps({"oracle": str(summary["expert"]), "medium": str(summary["medium"]),
                       "random_return": level["random_return"], "oracle_return": level["expert_return"],
                       "medium_step": level["chosen_step"],
-                      "medium_return": level["checkpoint_returns"][str(level["chosen_step"])]}, indent=1))
+                      "medium_return": level["checkpoint_returns"][str(level["chosen_step"])],
+                      "medium_replay_recipes_sized": sized}, indent=1))
 
 
 if __name__ == "__main__":

@@ -309,3 +309,32 @@ def export_h2o_behaviours(run_dir: pathlib.Path, kept: pathlib.Path, pair: TaskP
         update_sidecar(out, training=training, score={"evaluation": scores[step], "run_result": None})
         written[role] = out
     return {"expert": written["sac-target"], "medium": written["sac-target-medium"], "level": level}
+
+
+def size_replay_recipes(robot: str, manifest_path: pathlib.Path | None = None) -> list[str]:
+    """Give every unbuilt ``medium-replay`` recipe of ``robot``'s H2O settings in the manifest the
+    size its shipped medium policy now says (what the run had stored at that checkpoint); the
+    recipes were written before the policy existed, with a placeholder size. A recipe whose
+    dataset is built already keeps its size: other data is a new dataset version. Returns the ids
+    changed."""
+    from offdyn_bench.datasets.manifest import Entry, read_manifest, write_manifest
+    from offdyn_bench.datasets.recipes import default_recipe, is_h2o_setting
+    from offdyn_bench.tasks import TASKS
+
+    manifest = read_manifest(manifest_path)
+    changed = []
+    for pair in TASKS.values():
+        if pair.robot.lower() != robot.lower() or not is_h2o_setting(pair):
+            continue
+        fresh = default_recipe(pair, "medium-replay")
+        entry = manifest.entries.get(fresh.dataset_id)
+        if entry is None or entry.recipe == fresh:
+            continue
+        if entry.files is not None:
+            raise OffdynError(f"{fresh.dataset_id} is built with {entry.recipe.num_transitions} transitions; the "
+                              f"medium policy now gives {fresh.num_transitions}: record it as a new version instead")
+        manifest = manifest.with_entry(Entry(recipe=fresh))
+        changed.append(fresh.dataset_id)
+    if changed:
+        write_manifest(manifest, manifest_path)
+    return changed

@@ -16,6 +16,7 @@ from offdyn_bench.datasets.build import SKILL_LEVEL_INFO, build_dataset, minari_
 from offdyn_bench.datasets.recipes import (
     H2O_QUALITIES,
     MEDIUM_FRACTION,
+    REPO_ROOT,
     Behaviour,
     Recipe,
     RecipeError,
@@ -175,3 +176,61 @@ def test_medium_expert_is_half_medium_then_half_the_oracle(behaviours, tmp_path)
     assert result.entry.recipe.oracle_policy_sha256 is not None  # the expert that acted is pinned
     medium = build_dataset(_recipe("medium", behaviours, transitions=31), root=tmp_path / "minari-medium")
     assert medium.entry.total_steps == 31 and medium.entry.recipe.behaviour.policy_sha256 is not None
+
+
+SHIPPED_MEDIUM = sorted(path for path in (REPO_ROOT / "assets" / "policies" / "sac-target-medium").glob("*.json"))
+
+
+@pytest.mark.parametrize("sidecar", SHIPPED_MEDIUM, ids=lambda path: path.stem)
+def test_a_shipped_medium_policy_is_its_runs_checkpoint_a_third_of_the_way_and_every_recipe_pins_it(sidecar):
+    """The medium level, chosen again from the returns its sidecar records, is the checkpoint it
+    ships; the oracle beside it is the same run's final checkpoint; and every H2O recipe of the
+    robot that the manifest records pins both files' sha256."""
+    from offdyn_bench.datasets.manifest import read_manifest
+    from offdyn_bench.datasets.policies import policy_sha256
+
+    medium = json.loads(sidecar.read_text())
+    level = medium["training"]["level"]
+    returns = {int(step): value for step, value in level["checkpoint_returns"].items()}
+    assert choose_medium(returns, level["random_return"], level["expert_return"], level["fraction"]) == \
+        medium["training"]["checkpoint_step"] == level["chosen_step"]
+    goal = level["random_return"] + MEDIUM_FRACTION * (level["expert_return"] - level["random_return"])
+    assert abs(returns[level["chosen_step"]] - goal) < 0.25 * (level["expert_return"] - level["random_return"])
+    oracle_path = REPO_ROOT / "assets" / "policies" / "sac-target" / sidecar.name
+    oracle = json.loads(oracle_path.read_text())
+    assert oracle["training"]["checkpoint_step"] == oracle["training"]["config"]["steps"] == max(returns)
+    assert oracle["training"]["config"] == medium["training"]["config"]
+    assert oracle["score"]["evaluation"]["mean_return"] == pytest.approx(level["expert_return"])
+    manifest = read_manifest()
+    robot = sidecar.stem.removesuffix("-nominal")
+    pinned = [entry.recipe for ident, entry in manifest.entries.items() if ident.startswith(f"offdyn/{robot}-h2o-")
+              and entry.files and entry.recipe.quality in H2O_QUALITIES]
+    assert pinned, f"no {robot} H2O dataset is recorded"
+    for recipe in pinned:
+        assert recipe.behaviour.policy_sha256 == policy_sha256(REPO_ROOT / recipe.behaviour.policy)
+        assert recipe.oracle_policy_sha256 == policy_sha256(oracle_path.with_suffix(".safetensors"))
+
+
+def test_unbuilt_replay_recipes_take_the_size_the_shipped_medium_policy_gives(tmp_path):
+    """The manifest's medium-replay recipes were written before any medium policy existed; once one
+    ships, they take what its run stored up to the medium step. A built one is never resized."""
+    from offdyn_bench.datasets.manifest import Entry, read_manifest, write_manifest
+    from offdyn_bench.datasets.training_data import size_replay_recipes
+
+    slugs = ("gravity-2p0", "friction-0p3", "joint-noise-1p0")
+    ids = [f"offdyn/halfcheetah-h2o-{slug}/medium-replay-v0" for slug in slugs]
+    stored = replay_transitions("assets/policies/sac-target-medium/halfcheetah-nominal.safetensors")
+    manifest = read_manifest()
+    for ident in ids:
+        placeholder = dataclasses.replace(manifest.get(ident).recipe, num_transitions=stored + 1)
+        manifest = manifest.with_entry(Entry(recipe=placeholder))
+    path = write_manifest(manifest, tmp_path / "datasets.json")
+    assert sorted(size_replay_recipes("HalfCheetah", path)) == sorted(ids)
+    resized = read_manifest(path)
+    assert [resized.get(ident).recipe.num_transitions for ident in ids] == [stored] * 3
+    assert size_replay_recipes("halfcheetah", path) == []  # nothing left to size
+    built = dataclasses.replace(resized.get(ids[0]).recipe, num_transitions=stored + 1)
+    write_manifest(resized.with_entry(Entry(recipe=built, files={"data/main_data.hdf5": "ab" * 32})), path)
+    with pytest.raises(OffdynError, match=f"is built with {stored + 1} transitions; the medium policy now gives "
+                                          f"{stored}: record it as a new version"):
+        size_replay_recipes("halfcheetah", path)
