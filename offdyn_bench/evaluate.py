@@ -317,16 +317,15 @@ def _conformance(loaded: LoadedAgents, task: str, track: str | None, budget: str
         notes.append("no track given (--track)")
     if episodes != EVAL_EPISODES:
         notes.append(f"{episodes} episodes per seed; the protocol evaluates {EVAL_EPISODES}")
-    source_official = official_source_dataset(task, track) if track is not None else None
-    for kind, provenance, official in (
-            ("dataset", loaded.dataset, official_datasets(task, track) if track is not None else ()),
-            ("source dataset", loaded.source_dataset, (source_official,) if source_official is not None else ())):
-        if track is None or provenance is None:
-            continue
-        used = provenance.get("dataset_id") or provenance.get("spec")
-        if official and used not in official:
-            notes.append(f"trained on {kind} {used!r}; the track's official {kind} is "
-                         + " or ".join(repr(name) for name in official))
+    if track is not None:
+        source_official = official_source_dataset(task, track)
+        for kind, provenance, official in (
+                ("dataset", loaded.dataset, official_datasets(task, track)),
+                ("source dataset", loaded.source_dataset, () if source_official is None else (source_official,))):
+            used = (provenance.get("dataset_id") or provenance.get("spec")) if provenance is not None else None
+            if official and provenance is not None and used not in official:
+                notes.append(f"trained on {kind} {used!r}; the track's official {kind} is "
+                             + " or ".join(repr(name) for name in official))
     return track, budget, notes
 
 

@@ -50,7 +50,8 @@ __all__ = [
     "BUDGETS", "CORE_SUITE", "EPISODE_SEEDS", "EVAL_EPISODES", "MIN_SEEDS", "PROTOCOL_VERSION",
     "REFERENCE_FILE", "REFERENCE_METHODS", "TRACKS", "Budget", "ProtocolError", "ReferenceScore", "Track",
     "check_method_on_track", "get_budget", "get_track", "has_references", "normalized_score",
-    "official_dataset", "official_datasets", "official_source_dataset", "record_oracle_reference", "record_random_reference",
+    "official_dataset", "official_datasets", "official_source_dataset", "record_oracle_reference",
+    "record_random_reference",
     "record_zero_command_reference", "reference_pair",
     "reference_scores", "track_of_method",
 ]

@@ -407,8 +407,8 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     continue
                 if any(run.dataset_tag is not None for run in method_runs):
                     # Merging a task's runs would pool datasets; their records are published run by run.
-                    submissions[method] = [f"it trains on {len(spec.datasets)} target dataset qualities per task "
-                                           f"(datasets: {', '.join(spec.datasets)}); a submission holds one"]
+                    submissions[method] = [(f"it trains on {len(spec.datasets)} target dataset qualities per task "
+                                            f"(datasets: {', '.join(spec.datasets)}); a submission holds one")]
                     continue
                 folder = write_submission_folder(spec, method, method_runs)
                 merged = [json.loads(path.read_text()) for path in sorted(folder.glob("*/evaluation.json"))]

@@ -666,6 +666,7 @@ def test_a_folder_that_names_a_dataset_must_hold_a_record_trained_on_it(tmp_path
     with pytest.raises(SubmissionError, match=r"seeds \[0\]; its folder 'source-policy-v0.seed-1' names others"):
         check_reference_record(dap, record, "dap", "halfcheetah-friction-5.0", "source-policy-v0.seed-1", "target")
     rl = REFERENCE_RUNS_DIR / "lite" / "sac-source" / "halfcheetah-friction-5.0" / "seed-0" / "evaluation.json"
-    with pytest.raises(SubmissionError, match=r"trained on no target dataset; its folder 'medium-v0.seed-0' names 'medium-v0'"):
+    with pytest.raises(SubmissionError,
+                       match=r"trained on no target dataset; its folder 'medium-v0.seed-0' names 'medium-v0'"):
         check_reference_record(rl, json.loads(rl.read_text()), "sac-source", "halfcheetah-friction-5.0",
                                "medium-v0.seed-0", "target")

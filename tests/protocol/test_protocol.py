@@ -298,5 +298,5 @@ def test_a_record_on_any_h2o_table_dataset_is_a_protocol_result(used, conformant
     assert (track, budget) == ("offline-target", "lite") and (not notes) == conformant
     if not conformant:
         slug = "offdyn/halfcheetah-h2o-gravity-2p0"
-        assert notes == [f"trained on dataset {used!r}; the track's official dataset is '{slug}/medium-v0' or "
-                         f"'{slug}/medium-replay-v0' or '{slug}/medium-expert-v0'"]
+        assert notes == [(f"trained on dataset {used!r}; the track's official dataset is '{slug}/medium-v0' or "
+                          f"'{slug}/medium-replay-v0' or '{slug}/medium-expert-v0'")]
