@@ -22,7 +22,7 @@ import numpy as np
 
 from offdyn_bench.datasets.archive import sha256_file
 from offdyn_bench.datasets.collect import Level, run_episode
-from offdyn_bench.datasets.policies import Policy, read_sidecar
+from offdyn_bench.datasets.policies import Policy, read_sidecar, sidecar_path
 from offdyn_bench.datasets.recipes import Recipe, RecipeError, dynamics_label
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import TaskPair, get_task
@@ -123,6 +123,10 @@ def _episodes_of(buffer: Mapping[str, np.ndarray]) -> list[slice]:
     return [slice(a, b) for a, b in zip(starts, [i + 1 for i in ends] + [len(observations)])]
 
 
+_REPLAYED_BUFFERS: dict[tuple[str, str, int], dict[str, np.ndarray]] = {}
+"""Replay buffers re-run and checked in this process, by (policy sha256, sidecar sha256, member)."""
+
+
 def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,
                             on_progress: Callable[[int], None] | None) -> tuple[list, dict[str, Any]]:
     """The stored episodes of the recipe's training run up to its checkpoint, simulated again in
@@ -144,19 +148,26 @@ def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,
     if step != recipe.num_transitions:  # plain SAC stores one transition per step: refuse before re-running
         raise RecipeError(f"{where}: the run stored {step} transitions up to step {step}; the recipe asks for "
                           f"{recipe.num_transitions} (medium-replay is all of them)")
-    with tempfile.TemporaryDirectory(prefix="offdyn-replay-") as scratch:
-        scratch_dir = pathlib.Path(scratch)
-        state_file = rerun_to_checkpoint(sidecar, scratch_dir / "run", where, progress=on_progress is not None)
-        # The re-run must have trained the very policy the recipe pins, or its buffer is another run's.
-        again = import_sac_actor(state_file, scratch_dir / "actor.safetensors", member=member,
-                                 trained_on=str(sidecar.get("trained_on")), training={}, score=None)
-        if sha256_file(again) != sha256_file(policy_path):
-            raise ReplayMismatchError(f"{where}: re-running the training of {recipe.behaviour.policy} to step {step} "
-                                      "gave other actor weights than the pinned policy's (another platform, library "
-                                      "version or code); the replay it stored cannot be reproduced here")
-        state = load_file(str(state_file))
-    buffer = {name: state[f"buffer.{name}"][member] for name in
-              ("observations", "actions", "rewards", "next_observations", "terminations")}
+    # One robot's H2O settings share a target, so their medium-replay data replay one run: re-run it
+    # once per process (keyed by the exact policy it must reproduce).
+    key = (sha256_file(policy_path), sha256_file(sidecar_path(policy_path)), member)
+    buffer = _REPLAYED_BUFFERS.get(key)
+    if buffer is None:
+        with tempfile.TemporaryDirectory(prefix="offdyn-replay-") as scratch:
+            scratch_dir = pathlib.Path(scratch)
+            state_file = rerun_to_checkpoint(sidecar, scratch_dir / "run", where, progress=on_progress is not None)
+            # The re-run must have trained the very policy the recipe pins, or its buffer is another run's.
+            again = import_sac_actor(state_file, scratch_dir / "actor.safetensors", member=member,
+                                     trained_on=str(sidecar.get("trained_on")), training={}, score=None)
+            if sha256_file(again) != key[0]:
+                raise ReplayMismatchError(f"{where}: re-running the training of {recipe.behaviour.policy} to step "
+                                          f"{step} gave other actor weights than the pinned policy's (another "
+                                          "platform, library version or code); the replay it stored cannot be "
+                                          "reproduced here")
+            state = load_file(str(state_file))
+        buffer = {name: state[f"buffer.{name}"][member] for name in
+                  ("observations", "actions", "rewards", "next_observations", "terminations")}
+        _REPLAYED_BUFFERS[key] = buffer
     rows = len(buffer["rewards"])
     if rows != recipe.num_transitions:
         raise RecipeError(f"{where}: the run stored {rows} transitions up to step {step}; the recipe asks for "
@@ -272,7 +283,7 @@ def export_h2o_behaviours(run_dir: pathlib.Path, kept: pathlib.Path, pair: TaskP
 
     from baselines.checkpoint import checkpoint_step
     from offdyn_bench.datasets.collect import random_reference_returns
-    from offdyn_bench.datasets.policies import evaluate_policy, sidecar_path, update_sidecar
+    from offdyn_bench.datasets.policies import evaluate_policy, update_sidecar
     from offdyn_bench.datasets.recipes import sac_policy_path
 
     config = json.loads((run_dir / "config.json").read_text())

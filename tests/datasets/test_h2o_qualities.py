@@ -116,9 +116,12 @@ def test_every_checkpoint_is_kept_and_the_policies_say_where_they_come_from(beha
     assert str(summary["expert"]).endswith("assets/policies/sac-target/walker2d-nominal.safetensors")
 
 
-def test_medium_replay_is_the_runs_buffer_simulated_again(behaviours, tmp_path):
+def test_medium_replay_is_the_runs_buffer_simulated_again(behaviours, tmp_path, monkeypatch):
+    from offdyn_bench.datasets import training_data
+
     out, _, summary = behaviours
     recipe = _recipe("medium-replay", behaviours)
+    monkeypatch.setattr(training_data, "_REPLAYED_BUFFERS", {})
     result = build_dataset(recipe, root=tmp_path / "minari")
     step = summary["level"]["chosen_step"]
     assert result.entry.total_steps == step
@@ -142,9 +145,16 @@ def test_medium_replay_is_the_runs_buffer_simulated_again(behaviours, tmp_path):
     assert all(e.terminations[-1] or e.truncations[-1] for e in episodes)
     replay = json.loads(metadata["offdyn"]) if isinstance(metadata["offdyn"], str) else metadata["offdyn"]
     assert replay["behaviour"]["replay"]["checkpoint_step"] == step
-    # Built twice, the same bytes.
+    # Built again in this process (another H2O setting of the robot shares the run), the training is
+    # not re-run; re-run afresh, it gives the same bytes.
+    reruns = []
+    rerun = training_data.rerun_to_checkpoint
+    monkeypatch.setattr(training_data, "rerun_to_checkpoint", lambda *a, **k: reruns.append(a) or rerun(*a, **k))
     again = build_dataset(recipe, root=tmp_path / "minari-2")
-    assert again.entry.files == result.entry.files
+    assert again.entry.files == result.entry.files and reruns == []
+    training_data._REPLAYED_BUFFERS.clear()
+    fresh = build_dataset(recipe, root=tmp_path / "minari-3")
+    assert fresh.entry.files == result.entry.files and len(reruns) == 1
 
 
 def test_a_replay_that_does_not_reproduce_the_pinned_policy_is_refused(behaviours, tmp_path):
