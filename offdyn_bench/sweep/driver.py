@@ -405,7 +405,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 method_runs = [run for run in runs if run.method == method]
                 if any(records[run.run_id].status != "done" for run in method_runs):
                     continue
-                if any(run.dataset_tag is not None for run in method_runs):
+                if len({run.dataset_tag for run in method_runs}) > 1:
                     # Merging a task's runs would pool datasets; their records are published run by run.
                     submissions[method] = [(f"it trains on {len(spec.datasets)} target dataset qualities per task "
                                             f"(datasets: {', '.join(spec.datasets)}); a submission holds one")]

@@ -615,7 +615,8 @@ def test_a_stored_reference_submission_is_what_its_published_runs_assemble_to(pa
 def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     """The board checks the papers' claims on every published target record, as `protocol claims`
     does: DAP on halfcheetah-friction-5.0 returns 1147.9 against RL on source's 979.6 over 5 seeds
-    each, 1.17x, so "DAP at least doubles RL on source" does not hold there at lite."""
+    each, 1.17x, so "DAP at least doubles RL on source" does not hold there at lite; DAP+U's 1210.7
+    is above DAP's, with P 0.68."""
     from leaderboard.reference_runs import reference_claims
     from leaderboard.render import build_site
     from offdyn_bench.protocol.claims import check_claims
@@ -627,6 +628,10 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     dap = next(c for c in board if c.claim.name == "dap >= 2x rl-on-source" and c.task == "halfcheetah-friction-5.0")
     assert (dap.better_seeds, dap.worse_seeds, dap.holds) == (5, 5, False)
     assert dap.better_return == pytest.approx(1147.9, abs=0.05) and dap.worse_return == pytest.approx(979.6, abs=0.05)
+    dap_u = next(c for c in board if c.claim.name == "dap-u > dap" and c.task == "halfcheetah-friction-5.0")
+    assert (dap_u.better_seeds, dap_u.worse_seeds, dap_u.holds) == (5, 5, True)
+    assert dap_u.better_return == pytest.approx(1210.7, abs=0.05)
+    assert dap_u.probability_of_improvement == pytest.approx(0.68, abs=0.005)
     store = tmp_path / "store"
     store.mkdir()
     markdown, page = build_site(store, tmp_path / "site", reference_runs=REFERENCE_RUNS_DIR)
