@@ -67,11 +67,11 @@ def test_round_trip_through_minari(tiny_recipe: MakeRecipe, isolated_paths: path
 
 
 def test_provenance_is_stored(tiny_recipe: MakeRecipe, isolated_paths: pathlib.Path) -> None:
-    recipe = tiny_recipe("walker2d-h2o-gravity-2.0", transitions=50)
+    recipe = tiny_recipe("walker2d-gravity-2.0", transitions=50)
     build_dataset(recipe)
     meta = minari.load_dataset(recipe.dataset_id).storage.metadata
     offdyn = meta["offdyn"]
-    pair = get_task("walker2d-h2o-gravity-2.0")
+    pair = get_task("walker2d-gravity-2.0")
     assert offdyn["task"] == pair.to_dict() and offdyn["recipe"]["task_sha256"] == task_sha256(pair)
     assert offdyn["versions"]["mujoco"] == __import__("mujoco").__version__
     assert offdyn["recipe"]["seed"] == recipe.seed and offdyn["seeds"]["episodes"] >= 1
