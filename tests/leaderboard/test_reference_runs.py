@@ -632,6 +632,11 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     assert (dap_u.better_seeds, dap_u.worse_seeds, dap_u.holds) == (5, 5, True)
     assert dap_u.better_return == pytest.approx(1210.7, abs=0.05)
     assert dap_u.probability_of_improvement == pytest.approx(0.68, abs=0.005)
+    # H2O's Table 1 setting, per dataset: the runs' folders name it (medium-v0.seed-N).
+    h2o = next(c for c in board if c.claim.name == "h2o > darc")
+    assert (h2o.task, h2o.dataset) == ("halfcheetah-h2o-gravity-2.0", "offdyn/halfcheetah-h2o-gravity-2p0/medium-v0")
+    assert (h2o.better_seeds, h2o.worse_seeds, h2o.holds, h2o.claimed_on_task) == (3, 3, True, True)
+    assert h2o.better_return == pytest.approx(2641.1, abs=0.05) and h2o.worse_return == pytest.approx(823.1, abs=0.05)
     store = tmp_path / "store"
     store.mkdir()
     markdown, page = build_site(store, tmp_path / "site", reference_runs=REFERENCE_RUNS_DIR)
