@@ -86,10 +86,11 @@ def check_reference_record(path: Path, record: dict[str, Any], method: str, task
     seeds = record.get("seeds")
     if not isinstance(seeds, list) or not seeds or not all(isinstance(s, dict) for s in seeds):
         raise fail("no per-seed returns")
+    # A folder is ``seed-N``, or ``<dataset tag>.seed-N`` where a sweep ran several datasets.
+    tag, _, seeds_named = label.rpartition(".")
     numbers = [s.get("seed") for s in seeds]
-    if not all(isinstance(n, int) for n in numbers) or seed_label(sorted(numbers)) != label.rpartition(".")[2]:
+    if not all(isinstance(n, int) for n in numbers) or seed_label(sorted(numbers)) != seeds_named:
         raise fail(f"seeds {numbers}; its folder {label!r} names others")
-    tag = label.rpartition(".")[0]
     used = dataset_label(record)
     if tag and (used == NO_DATASET or dataset_tag(used) != tag):
         trained = "on no target dataset" if used == NO_DATASET else f"on dataset {used!r}"

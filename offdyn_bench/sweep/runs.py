@@ -171,9 +171,9 @@ def expand(spec: SweepSpec) -> list[Run]:
     if refused:
         raise SpecError(f"{where}: the protocol refuses {len(refused)} method(s) on track {spec.track!r}: "
                         + "; ".join(refused) + "; remove them or run them in a sweep of their own track")
-    # Per task, the datasets its data-hungry methods train on: (id, folder tag); a None id is the
+    # Per task, the datasets its data-hungry methods train on, one run each; a None id is the
     # trainer's own choice (the spec's dataset, or the track's official one).
-    datasets_of: dict[str, list[tuple[str | None, str | None]]] = {}
+    datasets_of: dict[str, list[str | None]] = {}
     if spec.datasets and any(needs_dataset.values()):
         datasets_of = _quality_datasets(spec, tasks)
     elif spec.dataset is None and any(needs_dataset.values()):
@@ -193,8 +193,9 @@ def expand(spec: SweepSpec) -> list[Run]:
         # with the same source score the first one's policy (the same bytes training would give).
         trained: dict[tuple[str, tuple[int, ...]], Run] = {}
         for task in tasks:
-            choices = datasets_of.get(task, [(None, None)]) if needs_dataset[method] else [(None, None)]
-            for (chosen, tag), seeds in itertools.product(choices, seed_groups(spec.seeds, spec.seeds_per_run)):
+            choices = datasets_of.get(task, [None]) if needs_dataset[method] else [None]
+            for chosen, seeds in itertools.product(choices, seed_groups(spec.seeds, spec.seeds_per_run)):
+                tag = dataset_tag(chosen) if chosen is not None else None
                 label = run_label(seeds, tag)
                 folder = root / RUNS_DIR / method / task / label
                 # train_dataset: what --dataset says (None: the trainer's default, the official one);
@@ -231,8 +232,8 @@ def expand(spec: SweepSpec) -> list[Run]:
     return runs
 
 
-def _quality_datasets(spec: SweepSpec, tasks: Sequence[str]) -> dict[str, list[tuple[str | None, str | None]]]:
-    """Per task, the Minari id of each of the spec's ``datasets`` qualities and its folder tag; a
+def _quality_datasets(spec: SweepSpec, tasks: Sequence[str]) -> dict[str, list[str | None]]:
+    """Per task, the Minari id of each of the spec's ``datasets`` qualities; a
     :class:`SpecError` naming every quality a task lacks or the manifest does not list."""
     from offdyn_bench.datasets import read_manifest
     from offdyn_bench.datasets.recipes import QUALITIES, dataset_id, qualities_of
@@ -243,7 +244,8 @@ def _quality_datasets(spec: SweepSpec, tasks: Sequence[str]) -> dict[str, list[t
         raise SpecError(f"{spec.source}: datasets: unknown quality {unknown[0]!r}; expected qualities from "
                         f"{', '.join(QUALITIES)} (for one dataset by id or file, use dataset)")
     manifest = read_manifest()
-    lacking, chosen = [], {}
+    lacking: list[str] = []
+    chosen: dict[str, list[str | None]] = {}
     for task in tasks:
         have = qualities_of(get_task(task))
         chosen[task] = []
@@ -254,7 +256,7 @@ def _quality_datasets(spec: SweepSpec, tasks: Sequence[str]) -> dict[str, list[t
             identifier = dataset_id(task, quality)
             if identifier not in manifest:
                 lacking.append(f"{identifier} is not in the manifest")
-            chosen[task].append((identifier, dataset_tag(identifier)))
+            chosen[task].append(identifier)
     if lacking:
         raise SpecError(f"{spec.source}: datasets: " + "; ".join(lacking))
     return chosen

@@ -146,22 +146,22 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
             value = value.get(part) if isinstance(value, dict) else None
         return value
 
-    methods = data["methods"]
-    if isinstance(methods, str):
-        methods = [methods]
-    if not isinstance(methods, list) or not methods or not all(isinstance(m, str) and m for m in methods):
-        raise fail("methods", "a non-empty list of method names, e.g. [sac-source, dap]")
-    if len(set(methods)) != len(methods):
-        raise fail("methods", "each method once")
+    def distinct_names(key: str, expected: str, each: str) -> list[str]:
+        """``key``'s value as a list of distinct non-empty names (one name alone is a list of one)."""
+        names = data[key]
+        if isinstance(names, str):
+            names = [names]
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+            raise fail(key, expected)
+        if len(set(names)) != len(names):
+            raise fail(key, f"each {each} once")
+        return names
 
+    methods = distinct_names("methods", "a non-empty list of method names, e.g. [sac-source, dap]", "method")
     tasks = data["tasks"]
     if tasks != CORE:
-        if isinstance(tasks, str):
-            tasks = [tasks]
-        if not isinstance(tasks, list) or not tasks or not all(isinstance(t, str) and t for t in tasks):
-            raise fail("tasks", f"{CORE!r} (the protocol's core suite) or a non-empty list of task names")
-        if len(set(tasks)) != len(tasks):
-            raise fail("tasks", "each task once")
+        tasks = distinct_names("tasks", f"{CORE!r} (the protocol's core suite) or a non-empty list of task names",
+                               "task")
 
     seeds_value = data["seeds"]
     if _is_int(seeds_value):
@@ -206,12 +206,8 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
         dataset = _absolute_dataset(dataset)
     datasets = data.get("datasets")
     if datasets is not None:
-        if isinstance(datasets, str):
-            datasets = [datasets]
-        if not isinstance(datasets, list) or not datasets or not all(isinstance(d, str) and d for d in datasets):
-            raise fail("datasets", "a non-empty list of dataset qualities, e.g. [medium, medium-replay, medium-expert]")
-        if len(set(datasets)) != len(datasets):
-            raise fail("datasets", "each quality once")
+        datasets = distinct_names("datasets", "a non-empty list of dataset qualities, e.g. [medium, medium-replay, "
+                                              "medium-expert]", "quality")
         if dataset is not None:
             raise SpecError(f"{source}: give at most one of dataset (one dataset for every run) and datasets "
                             "(a run per dataset quality)")
