@@ -388,7 +388,7 @@ class _Loop:
             if envs is not None:
                 envs.reset_all()
         self.clock = _Clock()
-        self.machines: list[dict[str, Any] | None] = [machine()]
+        self.machines: list[dict[str, Any] | None] = [machine(device)]
         """The distinct machines of this training's attempts, in order (None: attempts before
         checkpoints recorded them)."""
 
@@ -508,7 +508,7 @@ class _Loop:
         self.clock.resumed(TrainingCompute.parse(trainer.get("compute")))
         earlier = trainer.get("machines")
         earlier = ([m if isinstance(m, dict) else None for m in earlier] if isinstance(earlier, list) else [None])
-        current = machine()
+        current = machine(str(self.device))
         self.machines = earlier + ([current] if current not in earlier else [])
         return checkpoint_step(path)
 

@@ -18,7 +18,7 @@ restores an env exactly there.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import gymnasium
@@ -31,7 +31,7 @@ from offdyn_bench.effects import (CONTROL_COST_ON, ChannelEffects, ControlCostOn
                                   split_effects)
 from offdyn_bench.effects.model import ModelEffect, compile_model
 from offdyn_bench.errors import OffdynError, UnknownNameError
-from offdyn_bench.robots import ROBOTS, get_robot
+from offdyn_bench.robots import ROBOTS, Robot, get_robot
 from offdyn_bench.state_rows import ReadOnlyRows
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -192,12 +192,43 @@ def _with_model_effects(base: type) -> type:
     return EnvWithEffects
 
 
-# Module-level classes so instances pickle by reference.
-ENV_CLASSES: dict[str, type] = {}
-for _robot in ROBOTS.values():
-    _cls = _with_model_effects(_robot.load_env_class())
-    globals()[_cls.__name__] = _cls
-    ENV_CLASSES[_robot.name] = _cls
+def _class_name(robot: Robot) -> str:
+    """The module-level name of ``robot``'s class with effects, known without importing its env."""
+    return f"{robot.env_class.partition(':')[2].removesuffix('Env')}WithEffects"
+
+
+class _EnvClasses(Mapping[str, type]):
+    """Robot name -> its env class with model effects, built when first asked for: importing this
+    module loads no robot's env, so a HalfCheetah run never imports Gymnasium-Robotics (the Adroit
+    robots' package) and needs it installed only for the Adroit tasks."""
+
+    def __init__(self) -> None:
+        self._built: dict[str, type] = {}
+
+    def __getitem__(self, robot: str) -> type:
+        if robot not in self._built:
+            cls = _with_model_effects(ROBOTS[robot].load_env_class())
+            assert cls.__name__ == _class_name(ROBOTS[robot])
+            globals()[cls.__name__] = cls  # module-level, so instances pickle by reference
+            self._built[robot] = cls
+        return self._built[robot]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(ROBOTS)
+
+    def __len__(self) -> int:
+        return len(ROBOTS)
+
+
+ENV_CLASSES: Mapping[str, type] = _EnvClasses()
+
+
+def __getattr__(name: str) -> type:
+    # Unpickling looks an env class up by its module-level name before anything built it.
+    for robot in ROBOTS.values():
+        if _class_name(robot) == name:
+            return ENV_CLASSES[robot.name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class CommandedControlCost(gymnasium.Wrapper):

@@ -63,10 +63,11 @@ def _cpu_info() -> tuple[str | None, list[str]]:
     return model or platform.processor() or None, [flag for flag in _ISA_FLAGS if flag in flags]
 
 
-def machine() -> dict[str, Any]:
+def machine(device: str = "cpu") -> dict[str, Any]:
     """Where a number was computed, as far as it changes floating-point results: the CPU model, its
     vector instruction sets, the kernels torch and numpy dispatch to, torch's thread count, and the
-    environment variables that pin them. Records carry it beside :func:`versions`."""
+    environment variables that pin them; for a CUDA ``device`` (``cuda``, ``cuda:N``) also the GPU
+    (:func:`cuda_device`). Records carry it beside :func:`versions`."""
     import numpy
     import torch
 
@@ -83,4 +84,26 @@ def machine() -> dict[str, Any]:
         "torch_threads": torch.get_num_threads(),
         "numpy_simd": list(simd) if simd is not None else None,
         "numerics_environment": {name: os.environ[name] for name in NUMERICS_ENVIRONMENT if name in os.environ},
+    } | ({"cuda": cuda_device(device)} if device.startswith("cuda") else {})
+
+
+def cuda_device(device: str) -> dict[str, Any]:
+    """The GPU behind a torch CUDA ``device``: its model and compute capability, the CUDA and cuDNN
+    versions torch was built with, and the ``CUDA_VISIBLE_DEVICES`` the process was given (a
+    scheduler such as Ray sets it to the GPUs it assigned the task), so a CUDA number says which
+    card computed it. CPU records never carry this: asking would initialise CUDA."""
+    import torch
+
+    index = torch.device(device).index
+    index = torch.cuda.current_device() if index is None else index
+    properties = torch.cuda.get_device_properties(index)
+    cudnn = torch.backends.cudnn.version() if torch.backends.cudnn.is_available() else None
+    return {
+        "name": properties.name,
+        "capability": f"{properties.major}.{properties.minor}",
+        "memory_gib": round(properties.total_memory / 2**30, 1),
+        "index": index,
+        "visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"),
+        "cuda": torch.version.cuda,
+        "cudnn": cudnn,
     }

@@ -492,3 +492,31 @@ def test_a_copied_channel_env_steps_exactly_like_the_original(copier):
         if entry[0] != "reset":
             state = np.frombuffer(entry[5]["state"][2])
             assert state[0] > 0.0 and np.isfinite(state).all()  # a state, not a row left unwritten
+
+
+def test_a_locomotion_run_never_imports_another_robots_package():
+    """Env classes are built when a robot is first made: training or pickling a HalfCheetah env
+    imports neither Gymnasium-Robotics (the Adroit robots) nor their env module, so a machine
+    without that package (a GPU box carrying only what a sweep needs) still trains it."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent("""
+        import pickle, sys
+        import gymnasium
+        import baselines.train, offdyn_bench
+        from offdyn_bench import envs
+        gymnasium.make("offdyn/HalfCheetah-friction-5.0-target-v0").reset(seed=0)
+        cls = envs.ENV_CLASSES["HalfCheetah"]
+        assert pickle.loads(pickle.dumps(cls)) is cls and cls.__name__ == "HalfCheetahWithEffects"
+        assert len(envs.ENV_CLASSES) == len(set(envs.ENV_CLASSES)) > 10
+        print(sorted(m for m in ("gymnasium_robotics", "offdyn_bench.robotics.adroit_envs") if m in sys.modules))
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=True)
+    assert result.stdout.strip().splitlines()[-1] == "[]"
+    # An env class is found by its module-level name before anything built it (how unpickling looks).
+    lookup = subprocess.run([sys.executable, "-c", "import pickle, offdyn_bench.envs as e; "
+                             "print(e.HopperWithEffects.__name__, e.ENV_CLASSES['Hopper'] is e.HopperWithEffects)"],
+                            capture_output=True, text=True, timeout=120, check=True)
+    assert lookup.stdout.split() == ["HopperWithEffects", "True"]

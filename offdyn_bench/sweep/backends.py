@@ -82,6 +82,19 @@ def default_workers(cpus_per_run: float) -> int:
     return max(1, int((os.cpu_count() or 1) // max(cpus_per_run, 1.0)))
 
 
+# Ray accounts resources in whole units of 1/10,000 (a GPU asked for as 0.2 is 2,000 units), so
+# five runs of 0.2 fit one GPU; floats would say four (1.0 // 0.2 == 4.0).
+_RAY_RESOURCE_UNITS = 10_000
+
+
+def runs_that_fit(available: float, per_run: float) -> int:
+    """How many runs asking for ``per_run`` of a resource fit in ``available`` of it, as Ray counts
+    (a huge number when runs ask for none)."""
+    if per_run <= 0:
+        return 10**6
+    return int(round(available * _RAY_RESOURCE_UNITS) // round(per_run * _RAY_RESOURCE_UNITS))
+
+
 class RayBackend:
     """One Ray task per attempt, declaring ``num_cpus``/``num_gpus``; Ray places it on a node with
     those resources free. ``address`` joins a cluster (``auto``, ``ray://head:10001``); None starts
@@ -126,8 +139,8 @@ class RayBackend:
         Submitting more would only queue them inside Ray, and the driver's count of running runs
         stays true when it does not."""
         cluster = self._ray.cluster_resources()
-        by_cpu = int(cluster.get("CPU", 0.0) // self._cpus_per_run) if self._cpus_per_run > 0 else 10**6
-        by_gpu = int(cluster.get("GPU", 0.0) // self._gpus_per_run) if self._gpus_per_run > 0 else 10**6
+        by_cpu = runs_that_fit(cluster.get("CPU", 0.0), self._cpus_per_run)
+        by_gpu = runs_that_fit(cluster.get("GPU", 0.0), self._gpus_per_run)
         return max(1, min(by_cpu, by_gpu))
 
     def submit(self, run: Run, attempt: int) -> Any:

@@ -46,6 +46,9 @@ class AttemptOutcome:
     evaluate_wall_time_s: float = 0.0
     """The part of ``wall_time_s`` its evaluate commands took: what a run that only scores a
     policy costs, which the sweep's ETA needs before any such run has finished."""
+    cuda_visible_devices: str | None = None
+    """The worker's ``CUDA_VISIBLE_DEVICES`` (None: unset), which its commands inherit: on the Ray
+    backend with ``gpus_per_run`` > 0, the GPUs Ray assigned this attempt."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -60,18 +63,21 @@ def command_line(args: tuple[str, ...] | list[str]) -> list[str]:
 def execute_run(run: Run, attempt: int) -> AttemptOutcome:
     """Train (unless finished) and evaluate ``run``; never raises for a failing command."""
     host = socket.gethostname()
+    gpus = os.environ.get("CUDA_VISIBLE_DEVICES")
     started = time.monotonic()
     cpu = 0.0
     evaluating = 0.0
     run.log.parent.mkdir(parents=True, exist_ok=True)
     with open(run.log, "a", buffering=1) as log:
-        log.write(f"=== attempt {attempt} of {run.run_id} on {host}, {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        log.write(f"=== attempt {attempt} of {run.run_id} on {host}, {time.strftime('%Y-%m-%d %H:%M:%S')}"
+                  + (f", CUDA_VISIBLE_DEVICES={gpus}" if gpus is not None else "") + "\n")
 
         def outcome(ok: bool, stage: str, exit_code: int | None = None, error: str | None = None,
                     mean_return: float | None = None) -> AttemptOutcome:
             result = AttemptOutcome(ok=ok, stage=stage, exit_code=exit_code, error=error,
                                     wall_time_s=round(time.monotonic() - started, 3), cpu_time_s=round(cpu, 3),
-                                    host=host, mean_return=mean_return, evaluate_wall_time_s=round(evaluating, 3))
+                                    host=host, mean_return=mean_return, evaluate_wall_time_s=round(evaluating, 3),
+                                    cuda_visible_devices=gpus)
             log.write(f"=== attempt {attempt}: {'done' if ok else 'failed at ' + stage}"
                       + (f" ({error})" if error else "") + "\n")
             return result

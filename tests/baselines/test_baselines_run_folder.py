@@ -170,7 +170,7 @@ def test_a_run_records_the_machines_its_attempts_ran_on(whole_run, cut_run, monk
     assert _trainer(checkpoints(cut_run)[-1])["machines"] == [here]
     # The same run resumed on "another" machine: both are listed, and the numbers are the run's.
     elsewhere = here | {"cpu": "another CPU model", "torch_cpu_capability": "AVX2"}
-    monkeypatch.setattr(training, "machine", lambda: elsewhere)
+    monkeypatch.setattr(training, "machine", lambda device="cpu": elsewhere)
     resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
     assert resumed["machines"] == [here, elsewhere]
     assert resumed["returns"] == whole_run[0]["returns"]
@@ -185,6 +185,28 @@ def test_a_checkpoint_from_before_machines_were_recorded_says_the_earlier_ones_a
         (checkpoint / TRAINER_FILE).write_text(json.dumps(trainer))
         (checkpoint / CHECKSUMS_FILE).unlink()
     assert train("sac-source", PENDULUM, out=cut_run, **RUN)["machines"] == [None, machine()]
+
+
+def test_a_cuda_record_names_the_card_and_the_gpus_the_process_was_given(monkeypatch):
+    """A CUDA number depends on the card and CUDA build; a CPU record never asks (that would
+    initialise CUDA). The card is faked here: CI has none."""
+    import types
+
+    import torch
+
+    from offdyn_bench.versions import machine
+
+    assert "cuda" not in machine() and "cuda" not in machine("cpu")
+    card = types.SimpleNamespace(name="NVIDIA H200", major=9, minor=0, total_memory=143771 * 2**20)
+    asked = []
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda index: asked.append(index) or card)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3")
+    record = machine("cuda:1")["cuda"]
+    assert asked == [1]
+    assert record["name"] == "NVIDIA H200" and record["capability"] == "9.0" and record["index"] == 1
+    assert record["memory_gib"] == pytest.approx(140.4, abs=0.05) and record["visible_devices"] == "3"
+    assert machine("cuda")["cuda"]["index"] == 0  # no index: the current device
 
 
 def test_the_numerics_environment_is_recorded_where_set(monkeypatch):

@@ -1,0 +1,53 @@
+"""GPU placement on the Ray backend: a local Ray instance that declares one GPU (Ray schedules
+declared resources whether or not the card exists), runs that each ask for half of it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from offdyn_bench.sweep import parse_spec
+from offdyn_bench.sweep.driver import STATE_FILE, run_sweep
+
+ray = pytest.importorskip("ray", reason="the Ray backend needs ray (pip install 'ray==2.60.0', in the test extra)")
+
+
+@pytest.fixture(scope="module")
+def ray_with_one_gpu():
+    ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def test_each_attempt_records_the_gpu_ray_assigned_it(tmp_path, tiny_spec, ray_with_one_gpu):
+    # The spec refuses GPUs for CPU training, so the placement is asked for past it: the runs train
+    # on the CPU while Ray hands each the declared GPU, which is all this test is about.
+    spec = dataclasses.replace(parse_spec(tiny_spec(tmp_path / "out")), gpus_per_run=0.5)
+    report = run_sweep(spec, backend="ray", echo=None)
+    assert not report.failed and report.launched == 2
+    state = json.loads((spec.out / STATE_FILE).read_text())
+    for run in report.runs:
+        attempt = state["runs"][run.run_id]["history"][0]
+        # Ray sets CUDA_VISIBLE_DEVICES in the worker to the GPU it assigned; train inherits it.
+        assert attempt["cuda_visible_devices"] == "0"
+        assert ", CUDA_VISIBLE_DEVICES=0\n" in run.log.read_text()
+
+
+@pytest.mark.parametrize(("available", "per_run", "fit"), [(1, 0.2, 5), (1, 0.1, 10), (3, 0.3, 10), (1, 1 / 3, 3),
+                                                           (1, 0.0625, 16), (2, 1, 2), (1, 0.7, 1), (4, 0, 10**6)])
+def test_fractional_gpus_fit_as_ray_counts_them(available, per_run, fit):
+    from offdyn_bench.sweep.backends import runs_that_fit
+
+    # Floats would say 4 for five runs of 0.2 GPU (1.0 // 0.2 == 4.0) and leave a fifth of the GPU idle.
+    assert runs_that_fit(available, per_run) == fit
+
+
+def test_the_ray_backend_keeps_as_many_fractional_gpu_runs_in_flight_as_fit(ray_with_one_gpu):
+    from offdyn_bench.sweep.backends import RayBackend
+
+    assert RayBackend(address=None, cpus_per_run=0.2, gpus_per_run=0.2).capacity == 5
+    assert RayBackend(address=None, cpus_per_run=1, gpus_per_run=0.2).capacity == 2  # 2 CPUs
