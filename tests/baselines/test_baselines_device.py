@@ -88,6 +88,9 @@ def test_cuda_resume_equals_an_uninterrupted_run(tmp_path):
     assert train("sac-source", PENDULUM, out=tmp_path / "cut", stop_after=40, **common) is None
     resumed = train("sac-source", PENDULUM, out=tmp_path / "cut", **common)
     assert resumed["returns"] == whole["returns"]
+    # One machine, named with its card, across the resume: the same card is the same machine.
+    card = torch.cuda.get_device_name(0)
+    assert [m["cuda"]["name"] for m in resumed["machines"]] == [card] == [m["cuda"]["name"] for m in whole["machines"]]
 
 
 @needs_cuda
