@@ -633,10 +633,11 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     assert dap_u.better_return == pytest.approx(1210.7, abs=0.05)
     assert dap_u.probability_of_improvement == pytest.approx(0.68, abs=0.005)
     # H2O's Table 1 setting, per dataset: the runs' folders name it (medium-v0.seed-N).
-    h2o = next(c for c in board if c.claim.name == "h2o > darc")
-    assert (h2o.task, h2o.dataset) == ("halfcheetah-h2o-gravity-2.0", "offdyn/halfcheetah-h2o-gravity-2p0/medium-v0")
-    assert (h2o.better_seeds, h2o.worse_seeds, h2o.holds, h2o.claimed_on_task) == (3, 3, True, True)
-    assert h2o.better_return == pytest.approx(2641.1, abs=0.05) and h2o.worse_return == pytest.approx(823.1, abs=0.05)
+    h2o = next(c for c in board if c.claim.name == "h2o > darc" and c.task == "halfcheetah-h2o-gravity-2.0")
+    assert h2o.dataset == "offdyn/halfcheetah-h2o-gravity-2p0/medium-v0"
+    assert (h2o.better_seeds, h2o.worse_seeds, h2o.holds, h2o.claimed_on_task) == (5, 5, True, True)
+    assert h2o.better_return == pytest.approx(2785.2, abs=0.05) and h2o.worse_return == pytest.approx(2215.1, abs=0.05)
+    assert h2o.probability_of_improvement == pytest.approx(0.60, abs=0.005)
     store = tmp_path / "store"
     store.mkdir()
     markdown, page = build_site(store, tmp_path / "site", reference_runs=REFERENCE_RUNS_DIR)
