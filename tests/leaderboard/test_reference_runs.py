@@ -638,6 +638,12 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     assert (h2o.better_seeds, h2o.worse_seeds, h2o.holds, h2o.claimed_on_task) == (5, 5, True, True)
     assert h2o.better_return == pytest.approx(2785.2, abs=0.05) and h2o.worse_return == pytest.approx(2215.1, abs=0.05)
     assert h2o.probability_of_improvement == pytest.approx(0.60, abs=0.005)
+    friction = next(c for c in board if c.claim.name == "h2o > darc" and c.task == "halfcheetah-h2o-friction-0.3")
+    assert friction.dataset == "offdyn/halfcheetah-h2o-friction-0p3/medium-v0"
+    assert (friction.better_seeds, friction.worse_seeds, friction.holds) == (3, 3, True)
+    assert friction.better_return == pytest.approx(3658.4, abs=0.05)
+    assert friction.worse_return == pytest.approx(2218.3, abs=0.05)
+    assert friction.probability_of_improvement == 1.0  # every H2O seed above every DARC seed
     store = tmp_path / "store"
     store.mkdir()
     markdown, page = build_site(store, tmp_path / "site", reference_runs=REFERENCE_RUNS_DIR)
