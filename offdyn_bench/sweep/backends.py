@@ -95,6 +95,14 @@ def runs_that_fit(available: float, per_run: float) -> int:
     return int(round(available * _RAY_RESOURCE_UNITS) // round(per_run * _RAY_RESOURCE_UNITS))
 
 
+def cpus_for(workers: int, cpus_per_run: float) -> int:
+    """The whole CPUs a local Ray instance needs to hold ``workers`` runs of ``cpus_per_run`` at
+    once, counted as Ray counts: 10 runs of 0.3 need 3 (``ceil(10 * 0.3)`` says 4, which would let
+    13 run)."""
+    units = workers * round(cpus_per_run * _RAY_RESOURCE_UNITS)
+    return max(1, -(-units // _RAY_RESOURCE_UNITS))
+
+
 class RayBackend:
     """One Ray task per attempt, declaring ``num_cpus``/``num_gpus``; Ray places it on a node with
     those resources free. ``address`` joins a cluster (``auto``, ``ray://head:10001``); None starts

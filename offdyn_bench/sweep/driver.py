@@ -24,7 +24,7 @@ from typing import Any
 
 from baselines.run_folder import TrainingProgress, exclusive_folder_lock, training_progress, write_json_atomic
 from offdyn_bench.errors import OffdynError
-from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, default_workers
+from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, cpus_for, default_workers
 from offdyn_bench.sweep.execute import AttemptOutcome
 from offdyn_bench.sweep.runs import (
     EVALUATION_FILE,
@@ -261,7 +261,7 @@ def make_backend(name: str, spec: SweepSpec, workers: int | None) -> Backend:
     if name == "local":
         return LocalBackend(workers if workers is not None else default_workers(spec.cpus_per_run))
     if name == "ray":
-        local_cpus = None if workers is None else max(1, math.ceil(workers * spec.cpus_per_run))
+        local_cpus = None if workers is None else cpus_for(workers, spec.cpus_per_run)
         return RayBackend(address=spec.ray_address, cpus_per_run=spec.cpus_per_run,
                           gpus_per_run=spec.gpus_per_run, local_cpus=local_cpus)
     raise OffdynError(f"--backend {name!r}; expected local or ray")

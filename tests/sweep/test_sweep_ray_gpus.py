@@ -46,6 +46,15 @@ def test_fractional_gpus_fit_as_ray_counts_them(available, per_run, fit):
     assert runs_that_fit(available, per_run) == fit
 
 
+@pytest.mark.parametrize(("workers", "per_run", "cpus"), [(10, 0.3, 3), (3, 0.1, 1), (7, 0.7, 5), (2, 1, 2), (3, 1.5, 5)])
+def test_workers_ask_a_local_ray_for_the_cpus_that_hold_exactly_them(workers, per_run, cpus):
+    from offdyn_bench.sweep.backends import cpus_for, runs_that_fit
+
+    # ceil(10 * 0.3) is 4 in floats, which would let 13 runs of 0.3 CPU run where --workers said 10.
+    assert cpus_for(workers, per_run) == cpus
+    assert runs_that_fit(cpus, per_run) >= workers
+
+
 def test_the_ray_backend_keeps_as_many_fractional_gpu_runs_in_flight_as_fit(ray_with_one_gpu):
     from offdyn_bench.sweep.backends import RayBackend
 
