@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import pathlib
+import shlex
 from typing import Any
 
 import numpy as np
@@ -31,6 +32,13 @@ DEMO_TRAINING_TASK = "invertedpendulum-rail-offset-hard"
 DEMO_TRAINING = {"sac.hidden_sizes": "[64, 64]", "sac.batch_size": "128", "sac.actor_lr": "0.001",
                  "sac.critic_lr": "0.001", "sac.temperature_lr": "0.001", "random_steps": "1000"}
 DEMO_OFF_DYNAMICS = {"warmup_steps": "3000", "classifier.input_noise_std": "0.1"}
+DEMO_EVAL_EPISODES = 5
+"""Target episodes per in-training evaluation (the scored evaluation afterwards is the protocol's)."""
+
+
+def set_flags(overrides: dict[str, str]) -> str:
+    """``overrides`` as the ``train`` command's ``--set key=value`` flags, quoted for a POSIX shell."""
+    return "".join(f" --set {shlex.quote(f'{key}={value}')}" for key, value in overrides.items())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,22 +131,27 @@ def _train_or_reuse(algo: str, task: str, steps: int, out: pathlib.Path, **kwarg
     if (out / RESULT_FILE).is_file():
         typer.echo(f"   (reusing the finished run in {out})")
         return
-    train(algo, task, steps=steps, out=out, eval_episodes=5, progress=True, **kwargs)
+    train(algo, task, steps=steps, out=out, eval_episodes=DEMO_EVAL_EPISODES, progress=True, **kwargs)
 
 
 def demo_training(out: pathlib.Path, steps: int, n_seeds: int) -> list[pathlib.Path]:
     pair = get_task(DEMO_TRAINING_TASK)
     typer.echo(f"\n== 5. Training on {pair.name} ({pair.description}), {n_seeds} seeds each")
     runs = out / "runs" / f"{steps}-steps"
-    common = f"--task {pair.name} --steps {steps} --n-seeds {n_seeds}"
+    # The printed commands carry the demo's --set overrides and evaluation count, so each one run
+    # alone trains the same run the demo trains.
+    common = f"--task {pair.name} --steps {steps} --n-seeds {n_seeds} --eval-episodes {DEMO_EVAL_EPISODES}"
     source_dir = runs / "sac-source"
-    typer.echo(f"   RL on source:  offdyn-bench train sac-source {common} --out {source_dir}")
+    typer.echo(f"   RL on source:  offdyn-bench train sac-source {common}{set_flags(DEMO_TRAINING)} "
+               f"--out {shlex.quote(str(source_dir))}")
     _train_or_reuse("sac-source", pair.name, steps, source_dir, n_seeds=n_seeds, overrides=DEMO_TRAINING)
     dataset = f"collect:{source_dir}:5000"
-    typer.echo(f"   DAP:           offdyn-bench train dap {common} --dataset {dataset} --out {runs / 'dap'}")
+    typer.echo(f"   DAP:           offdyn-bench train dap {common}{set_flags(DEMO_TRAINING | DEMO_OFF_DYNAMICS)} "
+               f"--dataset {shlex.quote(dataset)} --out {shlex.quote(str(runs / 'dap'))}")
     _train_or_reuse("dap", pair.name, steps, runs / "dap", n_seeds=n_seeds, dataset=dataset,
                     overrides=DEMO_TRAINING | DEMO_OFF_DYNAMICS)
-    typer.echo(f"   oracle:        offdyn-bench train sac-target {common} --out {runs / 'sac-target'}")
+    typer.echo(f"   oracle:        offdyn-bench train sac-target {common}{set_flags(DEMO_TRAINING)} "
+               f"--out {shlex.quote(str(runs / 'sac-target'))}")
     _train_or_reuse("sac-target", pair.name, steps, runs / "sac-target", n_seeds=n_seeds, overrides=DEMO_TRAINING)
     return [source_dir, runs / "dap", runs / "sac-target"]
 
