@@ -103,6 +103,16 @@ def cpus_for(workers: int, cpus_per_run: float) -> int:
     return max(1, -(-units // _RAY_RESOURCE_UNITS))
 
 
+def unreserved_gpu_error(device: str, cluster_gpus: float | None = None) -> OffdynError:
+    """A CUDA run that asks Ray for no GPU: Ray neither counts it on a GPU nor sets its
+    CUDA_VISIBLE_DEVICES (Ray 2.60), so every such run would train on every GPU of its node, unseen
+    by the scheduler that is placing the GPU runs beside it."""
+    where = "" if cluster_gpus is None else f" and the Ray cluster has {cluster_gpus:g} GPUs"
+    return OffdynError(f"device is {device!r} with gpus_per_run 0{where}: Ray would reserve no GPU for the runs "
+                       "and leave CUDA_VISIBLE_DEVICES unset, so they would share every GPU of a node unscheduled; "
+                       "expected gpus_per_run above 0 (0.33 puts three runs on a GPU) or device: cpu")
+
+
 class RayBackend:
     """One Ray task per attempt, declaring ``num_cpus``/``num_gpus``; Ray places it on a node with
     those resources free. ``address`` joins a cluster (``auto``, ``ray://head:10001``); None starts
@@ -112,7 +122,9 @@ class RayBackend:
     name = "ray"
 
     def __init__(self, *, address: str | None, cpus_per_run: float, gpus_per_run: float,
-                 local_cpus: int | None = None) -> None:
+                 local_cpus: int | None = None, device: str = "cpu") -> None:
+        if device.startswith("cuda") and gpus_per_run == 0:
+            raise unreserved_gpu_error(device)
         try:
             import ray
         except ImportError:
@@ -134,6 +146,9 @@ class RayBackend:
             self.close()
             raise OffdynError(f"gpus_per_run is {gpus_per_run:g} but the Ray cluster has {cluster.get('GPU', 0.0):g} "
                               "GPUs; no run could ever be placed")
+        if device == "auto" and gpus_per_run == 0 and cluster.get("GPU", 0.0) > 0:
+            self.close()
+            raise unreserved_gpu_error(device, cluster.get("GPU", 0.0))
         if cpus_per_run > cluster.get("CPU", 0.0):
             self.close()
             raise OffdynError(f"cpus_per_run is {cpus_per_run:g} but the Ray cluster has {cluster.get('CPU', 0.0):g} "

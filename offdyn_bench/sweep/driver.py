@@ -263,7 +263,7 @@ def make_backend(name: str, spec: SweepSpec, workers: int | None) -> Backend:
     if name == "ray":
         local_cpus = None if workers is None else cpus_for(workers, spec.cpus_per_run)
         return RayBackend(address=spec.ray_address, cpus_per_run=spec.cpus_per_run,
-                          gpus_per_run=spec.gpus_per_run, local_cpus=local_cpus)
+                          gpus_per_run=spec.gpus_per_run, local_cpus=local_cpus, device=spec.device)
     raise OffdynError(f"--backend {name!r}; expected local or ray")
 
 

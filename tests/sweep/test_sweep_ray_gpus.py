@@ -60,3 +60,24 @@ def test_the_ray_backend_keeps_as_many_fractional_gpu_runs_in_flight_as_fit(ray_
 
     assert RayBackend(address=None, cpus_per_run=0.2, gpus_per_run=0.2).capacity == 5
     assert RayBackend(address=None, cpus_per_run=1, gpus_per_run=0.2).capacity == 2  # 2 CPUs
+
+
+def test_a_cuda_sweep_that_reserves_no_gpu_is_refused_before_anything_is_written(tmp_path, tiny_spec):
+    from offdyn_bench.errors import OffdynError
+
+    # Ray sets no CUDA_VISIBLE_DEVICES for a task of 0 GPUs, so these runs would share every GPU unscheduled.
+    spec = dataclasses.replace(parse_spec(tiny_spec(tmp_path / "out")), device="cuda", gpus_per_run=0.0)
+    with pytest.raises(OffdynError, match="device is 'cuda' with gpus_per_run 0: Ray would reserve no GPU.*"
+                                          "expected gpus_per_run above 0"):
+        run_sweep(spec, backend="ray", echo=None)
+    assert not (spec.out / STATE_FILE).exists()
+
+
+def test_auto_device_on_a_cluster_with_gpus_must_reserve_one(tmp_path, tiny_spec, ray_with_one_gpu):
+    from offdyn_bench.errors import OffdynError
+
+    spec = dataclasses.replace(parse_spec(tiny_spec(tmp_path / "out")), device="auto", gpus_per_run=0.0)
+    with pytest.raises(OffdynError, match="device is 'auto' with gpus_per_run 0 and the Ray cluster has 1 GPUs"):
+        run_sweep(spec, backend="ray", echo=None)
+    assert not (spec.out / STATE_FILE).exists()
+    assert ray_with_one_gpu.is_initialized()  # the caller's Ray instance is left running
