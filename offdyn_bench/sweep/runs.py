@@ -111,7 +111,8 @@ def steps_of(spec: SweepSpec) -> int:
 
 
 def expand(spec: SweepSpec) -> list[Run]:
-    """The spec's runs, in method, task, seed order; a :class:`SpecError` listing every refusal."""
+    """The spec's runs, seed group by seed group (in each, method, task and dataset order), the order
+    the driver starts them in; a :class:`SpecError` listing every refusal."""
     from baselines.algorithms import apply_overrides, config_to_dict, get_algorithm
     from offdyn_bench.errors import OffdynError
     from offdyn_bench.protocol import get_budget, get_track, official_dataset, official_source_dataset
@@ -229,6 +230,11 @@ def expand(spec: SweepSpec) -> list[Run]:
                     run = dataclasses.replace(run, source_evaluate_args=tuple(_evaluate_args(
                         spec, donor.folder, task=task, out=folder / SOURCE_EVALUATION_FILE, side="source")))
                 runs.append(run)
+    # Seed-major: a sweep stopped part-way (a small machine, a lost lease) has the same seeds of
+    # every method and task, so its cells compare; within a group the order above stands, so a
+    # shared source training still precedes the runs that score it.
+    group_order = {group: index for index, group in enumerate(seed_groups(spec.seeds, spec.seeds_per_run))}
+    runs.sort(key=lambda run: group_order[run.seeds])
     return runs
 
 

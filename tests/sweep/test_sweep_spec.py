@@ -128,6 +128,19 @@ def test_expansion_names_folders_and_commands_deterministically(tmp_path, tiny_s
     assert seed_groups([4, 0, 1, 2, 3], 3) == [(0, 1, 2), (3, 4)]
 
 
+def test_runs_start_seed_group_by_seed_group_so_a_stopped_sweep_has_comparable_cells(tmp_path, tiny_spec):
+    spec = parse_spec(tiny_spec(tmp_path / "out", methods=["sac-source", "sac-target"],
+                                tasks=[TASK, "invertedpendulum-action-delay-1"], seeds=[2, 0, 1]))
+    runs = expand(spec)
+    assert [run.seeds for run in runs] == [(0,)] * 4 + [(1,)] * 4 + [(2,)] * 4
+    # Within a seed, method then task: the shared source training comes before the run that scores it.
+    assert [run.run_id for run in runs[:4]] == [f"sac-source/{TASK}/seed-0",
+                                                "sac-source/invertedpendulum-action-delay-1/seed-0",
+                                                f"sac-target/{TASK}/seed-0",
+                                                "sac-target/invertedpendulum-action-delay-1/seed-0"]
+    assert runs[1].shared_training == runs[0].folder and runs[0].shared_training is None
+
+
 def test_core_expands_to_the_protocol_core_suite(tmp_path, tiny_spec, write_spec):
     from offdyn_bench.protocol import CORE_SUITE
 
@@ -248,9 +261,8 @@ def test_datasets_runs_each_data_method_once_per_quality_and_names_the_dataset_i
                                 datasets=["medium", "medium-replay", "medium-expert"]))
     runs = expand(spec)
     h2o = [run for run in runs if run.method == "h2o"]
-    assert [run.run_id for run in h2o] == [f"h2o/{H2O_TASK}/{quality}-v0.seed-{seed}"
-                                           for quality in ("medium", "medium-replay", "medium-expert")
-                                           for seed in (0, 1)]
+    assert [run.run_id for run in h2o] == [f"h2o/{H2O_TASK}/{quality}-v0.seed-{seed}" for seed in (0, 1)
+                                           for quality in ("medium", "medium-replay", "medium-expert")]
     for run in h2o:
         quality_id = f"offdyn/halfcheetah-h2o-gravity-2p0/{run.dataset_tag}"
         assert run.folder.name == f"{run.dataset_tag}.seed-{run.seeds[0]}"
