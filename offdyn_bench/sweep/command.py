@@ -30,6 +30,11 @@ def sweep_command(
     = False,
     description: Annotated[str, typer.Option(help="Method description for --submit.")] = "",
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress lines; only the summary.")] = False,
+    start_before: Annotated[str | None, typer.Option(
+        "--start-before", metavar="DURATION",
+        help="Start no run or retry after this long (90m, 2h, 1h30m): the runs in flight finish, the rest stay "
+             "pending, and the sweep exits with code 3; run it again to continue. For an allocation or a lease "
+             "that ends: leave it the longest run's time.")] = None,
 ) -> None:
     """Run a sweep of training runs and their evaluations (resumable: run it again to continue)."""
     import shlex
@@ -38,6 +43,9 @@ def sweep_command(
     from offdyn_bench.sweep.spec import load_spec
 
     with exit_on_error():
+        from offdyn_bench.sweep.driver import parse_duration
+
+        limit = parse_duration(start_before) if start_before is not None else None
         spec = load_spec(spec_path, out=out)
         if dry_run:
             from offdyn_bench.sweep.runs import expand, run_finished
@@ -54,11 +62,13 @@ def sweep_command(
         from offdyn_bench.sweep.driver import run_sweep, summary_lines
 
         report = run_sweep(spec, backend=backend, workers=workers, echo=None if quiet else _progress_echo,
-                           submit=submit, description=description)
+                           submit=submit, description=description, start_before=limit)
     for line in summary_lines(report):
         typer.echo(line)
     if report.failed:
         raise typer.Exit(1)
+    if report.not_started:
+        raise typer.Exit(3)  # unfinished, but nothing wrong: a loop can tell it from done (0) and failed (1)
 
 
 def _progress_echo(line: str) -> None:

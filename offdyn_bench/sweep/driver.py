@@ -16,6 +16,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -108,9 +109,17 @@ class SweepReport:
     submitted: dict[str, Path]
     state_path: Path
 
+    start_before: float | None = None
+    """The ``--start-before`` limit in seconds (None: none)."""
+
     @property
     def failed(self) -> list[Run]:
         return [run for run in self.runs if self.records[run.run_id].status == "failed"]
+
+    @property
+    def not_started(self) -> list[Run]:
+        """Runs left pending because ``start_before`` had passed: the next sweep runs them."""
+        return [run for run in self.runs if self.records[run.run_id].status == "pending"]
 
 
 def _check_out(out: Path) -> None:
@@ -138,6 +147,21 @@ def _read_state(path: Path) -> dict[str, Any]:
         # The record only: run folders say what is done. A damaged one is started afresh.
         return {}
     return data if isinstance(data, dict) and data.get("format") == STATE_FORMAT else {}
+
+
+_DURATION = re.compile(r"(?:(\d+(?:\.\d+)?)h)?(?:(\d+(?:\.\d+)?)m)?(?:(\d+(?:\.\d+)?)s)?")
+
+
+def parse_duration(text: str, option: str = "--start-before") -> float:
+    """``90m``, ``2h``, ``1h30m``, ``45s`` as seconds (above 0); an :class:`OffdynError` otherwise."""
+    match = _DURATION.fullmatch(text.strip())
+    if not text.strip() or match is None or not any(match.groups()):
+        raise OffdynError(f"{option} {text!r}: expected a duration such as 90m, 2h, 1h30m or 45s")
+    hours, minutes, seconds = (float(part) if part else 0.0 for part in match.groups())
+    total = hours * 3600 + minutes * 60 + seconds
+    if total <= 0:
+        raise OffdynError(f"{option} {text!r}: expected a duration above 0")
+    return total
 
 
 def format_duration(seconds: float | None) -> str:
@@ -268,8 +292,15 @@ def make_backend(name: str, spec: SweepSpec, workers: int | None) -> Backend:
 
 
 def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = None, echo: Echo | None = print,
-              submit: bool = False, description: str = "") -> SweepReport:
-    """Run every run of ``spec`` that is not finished; return the report (failed runs included)."""
+              submit: bool = False, description: str = "", start_before: float | None = None) -> SweepReport:
+    """Run every run of ``spec`` that is not finished; return the report (failed runs included).
+
+    ``start_before``: seconds after which no run (or retry) starts; the runs in flight finish and
+    the rest stay pending (:attr:`SweepReport.not_started`), for a sweep that must end inside an
+    allocation or a lease. Run the sweep again to continue."""
+    began = time.monotonic()
+    if start_before is not None and not (math.isfinite(start_before) and start_before > 0):
+        raise OffdynError(f"--start-before {start_before!r}: expected a duration above 0 seconds")
     if backend not in ("local", "ray"):
         raise OffdynError(f"--backend {backend!r}; expected local or ray")
     if workers is not None and workers < 1:
@@ -342,10 +373,18 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     return r.shared_training is None or records[
                         trainer_of[r.training_folder].run_id].status in ("done", "failed")
 
+                def may_launch() -> bool:
+                    return start_before is None or time.monotonic() - began < start_before
+
                 try:
                     while pending or in_flight:
                         capacity = engine.capacity
-                        while pending and len(in_flight) < capacity:
+                        if pending and not may_launch():
+                            if not in_flight:
+                                say(f"sweep: --start-before {format_duration(start_before)} has passed; "
+                                    f"{len(pending)} run(s) left pending for the next sweep")
+                                break
+                        while pending and len(in_flight) < capacity and may_launch():
                             # A run that scores another's policy, once it may start, goes first:
                             # seconds of scoring give a result that would otherwise wait behind
                             # every training still to start.
@@ -417,7 +456,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 if submit and not submissions[method]:
                     submitted[method] = submit_method(spec, method, description)
             return SweepReport(spec=spec, runs=runs, records=records, launched=launched, submissions=submissions,
-                               submitted=submitted, state_path=state_path)
+                               submitted=submitted, state_path=state_path, start_before=start_before)
     finally:
         if engine is not None:
             engine.close()
@@ -442,6 +481,9 @@ def summary_lines(report: SweepReport) -> list[str]:
     for run in report.failed:
         record = report.records[run.run_id]
         lines.append(f"failed: {run.run_id} after {record.attempts} attempt(s): {record.error} (log: {run.log})")
+    if report.not_started:
+        lines.append(f"not started: {len(report.not_started)} run(s), as --start-before "
+                     f"{format_duration(report.start_before)} had passed; run the same sweep again to continue")
     evaluated = {run.method for run in report.runs if report.records[run.run_id].status == "done"}
     if len(evaluated) > 1:
         pattern = report.spec.out / RUNS_DIR / "*" / "*" / "*" / EVALUATION_FILE
