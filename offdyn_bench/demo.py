@@ -12,7 +12,6 @@ Each step prints the command that does the same thing on its own.
 from __future__ import annotations
 
 import dataclasses
-import json
 import pathlib
 import shlex
 from typing import Any

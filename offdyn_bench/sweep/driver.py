@@ -379,11 +379,10 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 try:
                     while pending or in_flight:
                         capacity = engine.capacity
-                        if pending and not may_launch():
-                            if not in_flight:
-                                say(f"sweep: --start-before {format_duration(start_before)} has passed; "
-                                    f"{len(pending)} run(s) left pending for the next sweep")
-                                break
+                        if pending and not in_flight and not may_launch():
+                            say(f"sweep: --start-before {format_duration(start_before)} has passed; "
+                                f"{len(pending)} run(s) left pending for the next sweep")
+                            break
                         while pending and len(in_flight) < capacity and may_launch():
                             # A run that scores another's policy, once it may start, goes first:
                             # seconds of scoring give a result that would otherwise wait behind

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -71,3 +72,36 @@ def shared_source_sweep(tmp_path_factory):
     root = tmp_path_factory.mktemp("shared")
     spec = parse_spec(_tiny_spec(root / "out", tasks=SHARED_SOURCE_TASKS, seeds=1), source="shared")
     return run_sweep(spec, workers=2, echo=None)
+
+
+def _train_process_of(folder: Path) -> int | None:
+    """The pid of the `train` subprocess writing into ``folder`` (Linux: read from /proc)."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            args = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"train" in args and str(folder).encode() in args:
+            return int(entry.name)
+    return None
+
+
+def _wait_for(condition, timeout: float = 240.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "timed out waiting"
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def train_process_of():
+    """``train_process_of(folder)``: the pid of the `train` subprocess writing into it, or None."""
+    return _train_process_of
+
+
+@pytest.fixture
+def wait_for():
+    """``wait_for(condition, timeout=240)``: poll until ``condition()`` is true, or fail."""
+    return _wait_for

@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -121,37 +120,17 @@ def test_a_failing_run_is_retried_exactly_max_retries_times_and_reported(tmp_pat
     assert "sac-source: not every run finished" in result.output and not (out / "submission").exists()
 
 
-def _train_process_of(folder: Path) -> int | None:
-    """The pid of the `train` subprocess writing into ``folder`` (Linux: read from /proc)."""
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            args = (entry / "cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"train" in args and str(folder).encode() in args:
-            return int(entry.name)
-    return None
-
-
-def _wait_for(condition, timeout: float = 240.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, "timed out waiting"
-        time.sleep(0.02)
-
-
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds the train subprocess through /proc")
-def test_a_train_subprocess_killed_mid_run_is_retried_and_resumes(tmp_path, tiny_spec, attempt_headers):
+def test_a_train_subprocess_killed_mid_run_is_retried_and_resumes(tmp_path, tiny_spec, attempt_headers,
+                                                                 train_process_of, wait_for):
     spec = parse_spec(tiny_spec(tmp_path / "out", steps=1000, seeds=2,
                                 training={"eval_episodes": 1, "checkpoint_every": 100, "eval_every": 250}))
     victim = expand(spec)[0]
     outcome = {}
     sweep = threading.Thread(target=lambda: outcome.setdefault("report", run_sweep(spec, workers=2, echo=None)))
     sweep.start()
-    _wait_for(lambda: any((victim.folder / "checkpoints").glob("step_*")) and _train_process_of(victim.folder))
-    os.kill(_train_process_of(victim.folder), signal.SIGKILL)
+    wait_for(lambda: any((victim.folder / "checkpoints").glob("step_*")) and train_process_of(victim.folder))
+    os.kill(train_process_of(victim.folder), signal.SIGKILL)
     sweep.join(timeout=300)
     report = outcome["report"]
     record = report.records[victim.run_id]
@@ -165,7 +144,8 @@ def test_a_train_subprocess_killed_mid_run_is_retried_and_resumes(tmp_path, tiny
 
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds the train subprocess through /proc")
 def test_a_killed_sweep_driver_keeps_finished_runs_and_the_rerun_completes(tmp_path, tiny_spec, write_spec,
-                                                                            attempt_headers):
+                                                                            attempt_headers, train_process_of,
+                                                                            wait_for):
     spec_path = write_spec(tmp_path / "spec.json", tiny_spec(
         tmp_path / "out", steps=1000, training={"eval_episodes": 1, "checkpoint_every": 100, "eval_every": 250}))
     first, second = expand(parse_spec(json.loads(spec_path.read_text())))
@@ -175,8 +155,8 @@ def test_a_killed_sweep_driver_keeps_finished_runs_and_the_rerun_completes(tmp_p
                               "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                              start_new_session=True)
     try:
-        _wait_for(lambda: (first.folder / "evaluation.json").exists()
-                  and any((second.folder / "checkpoints").glob("step_*")) and _train_process_of(second.folder))
+        wait_for(lambda: (first.folder / "evaluation.json").exists()
+                  and any((second.folder / "checkpoints").glob("step_*")) and train_process_of(second.folder))
     finally:
         sweep.kill()
         sweep.wait()
@@ -194,7 +174,7 @@ def test_a_killed_sweep_driver_keeps_finished_runs_and_the_rerun_completes(tmp_p
     # The re-run waited for the orphaned train (or found it finished), never failing on its lock.
     log = second.log.read_text()
     assert "=== waiting: another process is training in" in log or "holds a finished training run" in log
-    assert _train_process_of(second.folder) is None
+    assert train_process_of(second.folder) is None
 
 
 def test_merged_evaluation_holds_each_runs_returns_and_curves(finished_sweep):
