@@ -481,8 +481,9 @@ def summary_lines(report: SweepReport) -> list[str]:
         record = report.records[run.run_id]
         lines.append(f"failed: {run.run_id} after {record.attempts} attempt(s): {record.error} (log: {run.log})")
     if report.not_started:
-        lines.append(f"not started: {len(report.not_started)} run(s), as --start-before "
-                     f"{format_duration(report.start_before)} had passed; run the same sweep again to continue")
+        lines.append(f"left pending: {len(report.not_started)} run(s), not started (or not retried) as "
+                     f"--start-before {format_duration(report.start_before)} had passed; run the same sweep again "
+                     "to continue")
     evaluated = {run.method for run in report.runs if report.records[run.run_id].status == "done"}
     if len(evaluated) > 1:
         pattern = report.spec.out / RUNS_DIR / "*" / "*" / "*" / EVALUATION_FILE

@@ -55,14 +55,31 @@ def test_runs_in_flight_at_the_limit_finish_and_the_rest_wait_for_the_next_sweep
     state = json.loads((spec.out / STATE_FILE).read_text())
     assert state["runs"][second.run_id]["status"] == "pending" and state["runs"][second.run_id]["attempts"] == 0
     assert any("--start-before 1h00m has passed; 1 run(s) left pending for the next sweep" in line for line in lines)
-    assert ("not started: 1 run(s), as --start-before 1h00m had passed; run the same sweep again to continue"
-            in summary_lines(report))
+    assert ("left pending: 1 run(s), not started (or not retried) as --start-before 1h00m had passed; run the "
+            "same sweep again to continue" in summary_lines(report))
 
     monkeypatch.setattr(LocalBackend, "submit", submit)
     again = run_sweep(spec, workers=1, echo=None)  # no limit now: it finishes the rest, and only the rest
     assert again.launched == 1 and not again.not_started
     assert all(record.status == "done" for record in again.records.values())
     assert again.records[first.run_id].attempts == 1
+
+
+def test_an_attempt_that_fails_after_the_limit_is_not_retried(tmp_path, tiny_spec, monkeypatch):
+    spec = parse_spec(tiny_spec(tmp_path / "out", seeds=1, max_retries=2), source="tiny")
+    blocked = spec.out / "runs" / "sac-source" / "invertedpendulum-gravity-3.0" / "seed-0"
+    blocked.mkdir(parents=True)
+    (blocked / "notes.txt").write_text("not a run")  # `train` refuses this folder on every attempt
+    clock = _ClockThatJumps()
+    monkeypatch.setattr(driver, "time", clock)
+    submit = LocalBackend.submit
+    monkeypatch.setattr(LocalBackend, "submit", lambda self, run, attempt: (submit(self, run, attempt), clock.jump())[0])
+    report = run_sweep(spec, workers=1, echo=None, start_before=60.0)
+    (run,) = report.runs
+    record = report.records[run.run_id]
+    assert report.launched == 1 and record.attempts == 1 and record.status == "pending"
+    assert "is not empty and holds no training run" in record.error  # kept for the next sweep to show
+    assert report.not_started == [run] and not report.failed
 
 
 def test_the_command_exits_3_when_runs_were_left_and_refuses_a_bad_duration(tmp_path, tiny_spec, write_spec):
@@ -75,7 +92,7 @@ def test_the_command_exits_3_when_runs_were_left_and_refuses_a_bad_duration(tmp_
     # A millisecond has passed before the first run could start: nothing starts, both wait.
     result = runner.invoke(app, ["sweep", str(path), "--start-before", "0.001s", "--quiet"])
     assert result.exit_code == 3, result.output
-    assert "0/2 runs done, 0 failed" in result.output and "not started: 2 run(s)" in result.output
+    assert "0/2 runs done, 0 failed" in result.output and "left pending: 2 run(s)" in result.output
     state = json.loads((tmp_path / "out" / STATE_FILE).read_text())
     assert {entry["status"] for entry in state["runs"].values()} == {"pending"}
 
