@@ -191,8 +191,11 @@ class _Progress:
 
     def __init__(self, echo: Echo | None, total: int, kinds: dict[str, str] | None = None,
                  clock: Callable[[], float] = time.monotonic,
-                 progress_of: Callable[[str], TrainingProgress | None] | None = None) -> None:
+                 progress_of: Callable[[str], TrainingProgress | None] | None = None,
+                 launch_until: float | None = None) -> None:
         self.echo, self.total, self.clock = echo, total, clock
+        self.launch_until = launch_until
+        """``clock`` time after which no run starts (``--start-before``); None: no limit."""
         self.kinds = kinds or {}
         """Per run id, ``train`` or ``score``; a run not named trains."""
         self.progress_of = progress_of or (lambda _run_id: None)
@@ -236,7 +239,10 @@ class _Progress:
         counts = {status: 0 for status in ("done", "running", "failed", "pending")}
         for record in records.values():
             counts[record.status] = counts.get(record.status, 0) + 1
-        remaining = [run_id for run_id, record in records.items() if record.status in ("running", "pending")]
+        launching = self.launch_until is None or self.clock() < self.launch_until
+        # Past --start-before the sweep ends when the runs in flight do: pending ones wait for the next.
+        remaining = [run_id for run_id, record in records.items()
+                     if record.status == "running" or (launching and record.status == "pending")]
         looks = {run_id: self._look(run_id, records[run_id].status == "running") for run_id in remaining}
         paces = {run_id: look.seconds_per_run for run_id, look in looks.items()
                  if records[run_id].status == "running" and look is not None and look.seconds_per_run is not None}
@@ -268,8 +274,12 @@ class _Progress:
 
             work = sum(left(run_id) for run_id in remaining)
             eta = work / max(1, min(capacity, len(remaining)))
+        limit = ""
+        if self.launch_until is not None:
+            limit = (f"; starts runs for {format_duration(self.launch_until - self.clock())} more" if launching
+                     else "; starts no more runs (--start-before)")
         return (f"sweep: {counts['done']}/{self.total} done, {counts['running']} running, {counts['failed']} failed, "
-                f"{counts['pending']} pending; ETA {format_duration(eta)}")
+                f"{counts['pending']} pending; ETA {format_duration(eta)}{limit}")
 
     def show(self, records: dict[str, RunRecord], capacity: int, force: bool = False) -> None:
         if self.echo is None:
@@ -358,7 +368,8 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 folder_of = {run.run_id: run.folder for run in runs}
                 progress = _Progress(echo, len(runs), {
                     run.run_id: "train" if run.shared_training is None else "score" for run in runs},
-                    progress_of=lambda run_id: training_progress(folder_of[run_id]))
+                    clock=time.monotonic, progress_of=lambda run_id: training_progress(folder_of[run_id]),
+                    launch_until=None if start_before is None else began + start_before)
                 for run in runs:
                     if records[run.run_id].status == "done":
                         progress.add_wall(run.run_id, records[run.run_id].wall_time_s,
@@ -374,7 +385,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                         trainer_of[r.training_folder].run_id].status in ("done", "failed")
 
                 def may_launch() -> bool:
-                    return start_before is None or time.monotonic() - began < start_before
+                    return progress.launch_until is None or time.monotonic() < progress.launch_until
 
                 try:
                     while pending or in_flight:

@@ -55,6 +55,7 @@ def test_runs_in_flight_at_the_limit_finish_and_the_rest_wait_for_the_next_sweep
     state = json.loads((spec.out / STATE_FILE).read_text())
     assert state["runs"][second.run_id]["status"] == "pending" and state["runs"][second.run_id]["attempts"] == 0
     assert any("--start-before 1h00m has passed; 1 run(s) left pending for the next sweep" in line for line in lines)
+    assert any(line.endswith("; starts no more runs (--start-before)") for line in lines)
     assert ("left pending: 1 run(s), not started (or not retried) as --start-before 1h00m had passed; run the "
             "same sweep again to continue" in summary_lines(report))
 
@@ -108,3 +109,22 @@ def test_durations_read_as_seconds(text, seconds):
 def test_a_duration_that_is_not_one_is_refused(text, expected):
     with pytest.raises(OffdynError, match=f"--start-before '{text}': expected a duration {expected}"):
         parse_duration(text)
+
+
+def test_past_the_limit_the_eta_counts_only_the_runs_in_flight():
+    from offdyn_bench.sweep.driver import RunRecord, _Progress
+
+    def record(status: str) -> RunRecord:
+        return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
+
+    records = {"a": record("done"), "b": record("running"), "c": record("pending"), "d": record("pending")}
+    now = [0.0]
+    progress = _Progress(None, len(records), clock=lambda: now[0], launch_until=3600.0)
+    progress.add_wall("a", 1200.0)
+    progress.start("b")
+    now[0] = 300.0  # b has 15 of its 20 minutes left; c and d would start: 55 minutes on one worker
+    assert progress.line(records, capacity=1) == ("sweep: 1/4 done, 1 running, 0 failed, 2 pending; ETA 55m00s; "
+                                                  "starts runs for 55m00s more")
+    now[0] = 3900.0  # past the limit: the sweep ends when b does, c and d left for the next sweep
+    assert progress.line(records, capacity=1) == ("sweep: 1/4 done, 1 running, 0 failed, 2 pending; ETA 0s; "
+                                                  "starts no more runs (--start-before)")
