@@ -83,15 +83,25 @@ def test_an_attempt_that_fails_after_the_limit_is_not_retried(tmp_path, tiny_spe
     assert report.not_started == [run] and not report.failed
 
 
-def test_the_command_exits_3_when_runs_were_left_and_refuses_a_bad_duration(tmp_path, tiny_spec, write_spec):
+class _ClockThatRaces(_ClockThatJumps):
+    """The driver's ``time``, an hour later at every reading."""
+
+    def monotonic(self) -> float:
+        self.offset += 3600.0
+        return time.monotonic() + self.offset
+
+
+def test_the_command_exits_3_when_runs_were_left_and_refuses_a_bad_duration(tmp_path, tiny_spec, write_spec,
+                                                                             monkeypatch):
     path = write_spec(tmp_path / "spec.json", tiny_spec(tmp_path / "out"))
     refused = runner.invoke(app, ["sweep", str(path), "--start-before", "ten minutes", "--quiet"])
     assert refused.exit_code == 2
     assert refused.output.strip() == ("error: --start-before 'ten minutes': expected a duration such as 90m, 2h, "
                                       "1h30m or 45s")
     assert not (tmp_path / "out").exists()
-    # A millisecond has passed before the first run could start: nothing starts, both wait.
-    result = runner.invoke(app, ["sweep", str(path), "--start-before", "0.001s", "--quiet"])
+    # Half an hour has passed before the first run could start: nothing starts, both wait.
+    monkeypatch.setattr(driver, "time", _ClockThatRaces())
+    result = runner.invoke(app, ["sweep", str(path), "--start-before", "30m", "--quiet"])
     assert result.exit_code == 3, result.output
     assert "0/2 runs done, 0 failed" in result.output and "left pending: 2 run(s)" in result.output
     state = json.loads((tmp_path / "out" / STATE_FILE).read_text())
