@@ -644,6 +644,11 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     assert friction.better_return == pytest.approx(3746.9, abs=0.05)
     assert friction.worse_return == pytest.approx(2054.1, abs=0.05)
     assert friction.probability_of_improvement == 1.0  # every H2O seed above every DARC seed
+    cql = next(c for c in board if c.claim.name == "h2o > cql" and c.task == "halfcheetah-h2o-gravity-2.0")
+    assert cql.dataset == "offdyn/halfcheetah-h2o-gravity-2p0/medium-v0"
+    assert (cql.better_seeds, cql.worse_seeds, cql.holds) == (5, 1, True)  # one CQL seed: a tie, not a cell read
+    assert cql.worse_return == pytest.approx(2764.8, abs=0.05)
+    assert cql.probability_of_improvement == pytest.approx(0.80, abs=0.005)
     store = tmp_path / "store"
     store.mkdir()
     markdown, page = build_site(store, tmp_path / "site", reference_runs=REFERENCE_RUNS_DIR)
