@@ -209,6 +209,10 @@ class _Progress:
         """Per remaining training run, its progress when last looked at."""
         self.last_line, self.last_time = "", 0.0
 
+    def launching(self) -> bool:
+        """Whether runs may still start (``--start-before`` has not passed)."""
+        return self.launch_until is None or self.clock() < self.launch_until
+
     def start(self, run_id: str) -> None:
         self.started[run_id] = self.clock()
 
@@ -239,7 +243,7 @@ class _Progress:
         counts = {status: 0 for status in ("done", "running", "failed", "pending")}
         for record in records.values():
             counts[record.status] = counts.get(record.status, 0) + 1
-        launching = self.launch_until is None or self.clock() < self.launch_until
+        launching = self.launching()
         # Past --start-before the sweep ends when the runs in flight do: pending ones wait for the next.
         remaining = [run_id for run_id, record in records.items()
                      if record.status == "running" or (launching and record.status == "pending")]
@@ -384,17 +388,14 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     return r.shared_training is None or records[
                         trainer_of[r.training_folder].run_id].status in ("done", "failed")
 
-                def may_launch() -> bool:
-                    return progress.launch_until is None or time.monotonic() < progress.launch_until
-
                 try:
                     while pending or in_flight:
                         capacity = engine.capacity
-                        if pending and not in_flight and not may_launch():
+                        if pending and not in_flight and not progress.launching():
                             say(f"sweep: --start-before {format_duration(start_before)} has passed; "
                                 f"{len(pending)} run(s) left pending for the next sweep")
                             break
-                        while pending and len(in_flight) < capacity and may_launch():
+                        while pending and len(in_flight) < capacity and progress.launching():
                             # A run that scores another's policy, once it may start, goes first:
                             # seconds of scoring give a result that would otherwise wait behind
                             # every training still to start.
