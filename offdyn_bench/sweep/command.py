@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from offdyn_bench.errors import exit_on_error
+from offdyn_bench.errors import OffdynError, exit_on_error
 
 
 def sweep_command(
@@ -24,6 +24,10 @@ def sweep_command(
                                                         "the CPUs of a local Ray instance's runs.")] = None,
     out: Annotated[Path | None, typer.Option(help="Output folder (replaces the spec's out).")] = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="List the runs and their commands; run nothing.")] = False,
+    status: Annotated[bool, typer.Option("--status", help="Where the sweep in OUT stands (from another shell while "
+                                                          "it runs, or after it stopped): each run's status, "
+                                                          "steps, tries and compute, and the ETA; runs and "
+                                                          "writes nothing.")] = False,
     submit: Annotated[bool, typer.Option("--submit", help="When every run of a method is done and the sweep is a "
                                                           "protocol result (core suite, budget, seeds), write its "
                                                           "leaderboard submission to OUT/submission/METHOD.json.")]
@@ -47,6 +51,15 @@ def sweep_command(
 
         limit = parse_duration(start_before) if start_before is not None else None
         spec = load_spec(spec_path, out=out)
+        if status:
+            if dry_run or submit or start_before is not None:
+                raise OffdynError("--status only reads where the sweep stands; it takes no --dry-run, --submit "
+                                  "or --start-before")
+            from offdyn_bench.sweep.status import read_status, status_lines
+
+            for line in status_lines(read_status(spec), spec_path=shlex.quote(str(spec_path))):
+                typer.echo(line)
+            return
         if dry_run:
             from offdyn_bench.sweep.runs import expand, run_finished
 

@@ -13,10 +13,14 @@ train command resumes from the checkpoints).
 from __future__ import annotations
 
 import dataclasses
+import datetime
+import errno
+import fcntl
 import json
 import math
 import os
 import re
+import socket
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -138,7 +142,28 @@ def _sweep_lock(out: Path) -> AbstractContextManager[None]:
                                                  "locked); wait for it or use another out")
 
 
-def _read_state(path: Path) -> dict[str, Any]:
+def sweep_running(out: Path) -> bool:
+    """Whether a sweep driver holds ``out``'s lock now (creates nothing). The probe holds a shared
+    lock for an instant; a driver starting in that instant stops with "another sweep is running"."""
+    try:
+        fd = os.open(out / LOCK_FILE, os.O_RDONLY)
+    except OSError:
+        return False  # no lock file: no sweep has run there
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as error:
+        return error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+    finally:
+        os.close(fd)  # releases the probe's lock
+    return False
+
+
+def _utc(epoch_s: float) -> str:
+    return datetime.datetime.fromtimestamp(epoch_s, datetime.UTC).isoformat(timespec="seconds")
+
+
+def read_state(path: Path) -> dict[str, Any]:
+    """The state file's contents; {} where it is missing, unreadable or not a sweep's state."""
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:
@@ -312,7 +337,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
     ``start_before``: seconds after which no run (or retry) starts; the runs in flight finish and
     the rest stay pending (:attr:`SweepReport.not_started`), for a sweep that must end inside an
     allocation or a lease. Run the sweep again to continue."""
-    began = time.monotonic()
+    began, began_wall = time.monotonic(), time.time()
     if start_before is not None and not (math.isfinite(start_before) and start_before > 0):
         raise OffdynError(f"--start-before {start_before!r}: expected a duration above 0 seconds")
     if backend not in ("local", "ray"):
@@ -336,13 +361,20 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
     try:
         with _sweep_lock(spec.out):
             state_path = spec.out / STATE_FILE
-            stored = _read_state(state_path).get("runs") or {}
+            stored = read_state(state_path).get("runs") or {}
             records = {run.run_id: RunRecord.of(run, stored.get(run.run_id)) for run in runs}
             others = {key: value for key, value in stored.items() if key not in records}
+            # Who writes the state, for `sweep --status` from another shell (whether it is still
+            # alive is told by the lock, not by this record).
+            driver: dict[str, Any] = {
+                "pid": os.getpid(), "host": socket.gethostname(), "started_at": _utc(began_wall),
+                "capacity": None,
+                "starts_runs_until": None if start_before is None else _utc(began_wall + start_before)}
 
             def save() -> None:
                 write_json_atomic(state_path, {
                     "format": STATE_FORMAT, "format_version": 1, "spec": spec.to_dict(), "backend": backend,
+                    "driver": driver,
                     "runs": {key: dataclasses.asdict(record) for key, record in records.items()} | others,
                 })
 
@@ -390,7 +422,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
 
                 try:
                     while pending or in_flight:
-                        capacity = engine.capacity
+                        capacity = driver["capacity"] = engine.capacity
                         if pending and not in_flight and not progress.launching():
                             say(f"sweep: --start-before {format_duration(start_before)} has passed; "
                                 f"{len(pending)} run(s) left pending for the next sweep")
@@ -448,7 +480,10 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
 
             submissions: dict[str, list[str]] = {}
             submitted: dict[str, Path] = {}
-            from offdyn_bench.sweep.submission import leaderboard_blockers, write_submission_folder
+            from offdyn_bench.sweep.submission import (
+                leaderboard_blockers,
+                write_submission_folder,
+            )
             from offdyn_bench.sweep.submission import submit as submit_method
 
             for method in spec.methods:
@@ -473,25 +508,38 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
             engine.close()
 
 
+def run_table(runs: list[Run], records: dict[str, RunRecord], steps: dict[str, str] | None = None) -> list[str]:
+    """A line per run: status, attempts, compute over finished attempts, mean return; and with
+    ``steps`` (per run id, how far its training has got) a column for it."""
+    steps_column = f" {'steps':>5s}" if steps is not None else ""
+    header = f"{'run':58s} {'status':7s}{steps_column} {'tries':>5s} {'wall':>8s} {'cpu':>8s} {'return':>9s}"
+    lines = [header, "-" * len(header)]
+    for run in runs:
+        record = records[run.run_id]
+        mean = f"{record.mean_return:9.1f}" if record.mean_return is not None else f"{'-':>9s}"
+        step = f" {steps.get(run.run_id, '-'):>5s}" if steps is not None else ""
+        lines.append(f"{run.run_id:58s} {record.status:7s}{step} {record.attempts:5d} "
+                     f"{format_duration(record.wall_time_s):>8s} {format_duration(record.cpu_time_s):>8s} {mean}")
+    return lines
+
+
+def failure_lines(runs: list[Run], records: dict[str, RunRecord]) -> list[str]:
+    """A line per failed run: its attempts, its last error and its log."""
+    return [f"failed: {run.run_id} after {records[run.run_id].attempts} attempt(s): {records[run.run_id].error} "
+            f"(log: {run.log})" for run in runs if records[run.run_id].status == "failed"]
+
+
 def summary_lines(report: SweepReport) -> list[str]:
     """The summary table, then what to do with the results."""
     from offdyn_bench.sweep.submission import SUBMISSION_DIR, submit_command
 
-    header = f"{'run':58s} {'status':7s} {'tries':>5s} {'wall':>8s} {'cpu':>8s} {'return':>9s}"
-    lines = [header, "-" * len(header)]
-    for run in report.runs:
-        record = report.records[run.run_id]
-        mean = f"{record.mean_return:9.1f}" if record.mean_return is not None else f"{'-':>9s}"
-        lines.append(f"{run.run_id:58s} {record.status:7s} {record.attempts:5d} "
-                     f"{format_duration(record.wall_time_s):>8s} {format_duration(record.cpu_time_s):>8s} {mean}")
+    lines = run_table(report.runs, report.records)
     done = sum(report.records[run.run_id].status == "done" for run in report.runs)
     total_wall = sum(report.records[run.run_id].wall_time_s for run in report.runs)
     total_cpu = sum(report.records[run.run_id].cpu_time_s for run in report.runs)
     lines.append(f"{done}/{len(report.runs)} runs done, {len(report.failed)} failed; compute over all attempts: "
                  f"{format_duration(total_wall)} wall, {format_duration(total_cpu)} CPU; state: {report.state_path}")
-    for run in report.failed:
-        record = report.records[run.run_id]
-        lines.append(f"failed: {run.run_id} after {record.attempts} attempt(s): {record.error} (log: {run.log})")
+    lines += failure_lines(report.runs, report.records)
     if report.not_started:
         lines.append(f"left pending: {len(report.not_started)} run(s), not started (or not retried) as "
                      f"--start-before {format_duration(report.start_before)} had passed; run the same sweep again "

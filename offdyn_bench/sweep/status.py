@@ -1,0 +1,128 @@
+"""``offdyn-bench sweep SPEC --status``: where a sweep stands, read from another shell while it
+runs in the background (or after it stopped), without running, locking or writing anything.
+
+The run folders say what is done (as for the driver); the state file says which runs failed and
+how many attempts each took; the sweep's lock says whether a driver is still at work. A run the
+state file marks ``running`` while no driver holds the lock was cut short with its driver: the
+next sweep resumes it from its checkpoints, so it counts as pending here too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import time
+from typing import Any
+
+from baselines.run_folder import training_progress
+from offdyn_bench.sweep.driver import (
+    STATE_FILE,
+    RunRecord,
+    _Progress,
+    failure_lines,
+    read_state,
+    run_table,
+    sweep_running,
+)
+from offdyn_bench.sweep.runs import Run, expand, finished_evaluation, run_finished
+from offdyn_bench.sweep.spec import SweepSpec
+
+
+@dataclasses.dataclass
+class SweepStatus:
+    """A sweep's state as read from its output folder."""
+
+    spec: SweepSpec
+    runs: list[Run]
+    records: dict[str, RunRecord]
+    steps: dict[str, str]
+    """Per run id, the share of its training's steps done (``37%``); ``-`` where it has not started
+    or only scores another run's policy."""
+    driving: bool
+    """Whether a sweep driver holds the output folder's lock now."""
+    driver: dict[str, Any]
+    """What the state file records of the driver that wrote it last (pid, host, start, capacity,
+    ``--start-before`` limit); {} for a state file from before drivers recorded it."""
+
+    def count(self, status: str) -> int:
+        return sum(record.status == status for record in self.records.values())
+
+
+def read_status(spec: SweepSpec) -> SweepStatus:
+    """Read the sweep of ``spec`` from its output folder (an empty one: every run pending)."""
+    runs = expand(spec)
+    state = read_state(spec.out / STATE_FILE)
+    stored = state.get("runs") if isinstance(state.get("runs"), dict) else {}
+    driver = state.get("driver") if isinstance(state.get("driver"), dict) else {}
+    driving = sweep_running(spec.out)
+    records: dict[str, RunRecord] = {}
+    steps: dict[str, str] = {}
+    for run in runs:
+        entry = stored.get(run.run_id)
+        record = RunRecord.of(run, entry)
+        said = entry.get("status") if isinstance(entry, dict) else None
+        if run_finished(run):
+            record.status = "done"
+            evaluation = finished_evaluation(run)
+            returns = [float(x) for seed in evaluation["seeds"] for x in seed["returns"]] if evaluation else []
+            record.mean_return = sum(returns) / len(returns) if returns else None
+        elif said == "failed":
+            record.status = "failed"
+            record.error = entry.get("error") if isinstance(entry.get("error"), str) else None
+        elif said == "running" and driving:
+            record.status = "running"
+        else:
+            record.status = "pending"
+        records[run.run_id] = record
+        progress = training_progress(run.folder) if run.shared_training is None else None
+        if record.status == "done":
+            steps[run.run_id] = "100%"
+        elif progress is not None:
+            steps[run.run_id] = f"{100 * progress.fraction:.0f}%"
+    return SweepStatus(spec, runs, records, steps, driving, driver)
+
+
+def _moment(text: Any) -> datetime.datetime | None:
+    try:
+        moment = datetime.datetime.fromisoformat(text)
+    except (TypeError, ValueError):
+        return None
+    return moment if moment.tzinfo is not None else None
+
+
+def status_lines(status: SweepStatus, spec_path: str = "SPEC") -> list[str]:
+    """Who is running the sweep, a line per run, its failures and the progress line with an ETA."""
+    out, driver = status.spec.out, status.driver
+    started, until = _moment(driver.get("started_at")), _moment(driver.get("starts_runs_until"))
+    capacity = driver.get("capacity") if isinstance(driver.get("capacity"), int) and driver["capacity"] > 0 else None
+    left = status.count("pending") + status.count("running")
+    if status.driving:
+        who = (f"pid {driver['pid']} on {driver['host']}" if isinstance(driver.get("pid"), int)
+               and isinstance(driver.get("host"), str) else "a driver")
+        since = f", started {started:%Y-%m-%d %H:%M} UTC" if started is not None else ""
+        limit = ""
+        if until is not None:
+            limit = (f"; starts runs until {until:%Y-%m-%d %H:%M} UTC" if until.timestamp() > time.time()
+                     else "; starts no more runs (--start-before has passed)")
+        head = f"sweep {out}: running ({who}{since}{limit})"
+    elif left:
+        head = (f"sweep {out}: no sweep is running on it; {left} run(s) to go: run `offdyn-bench sweep "
+                f"{spec_path}` to continue (runs cut short resume from their checkpoints)")
+    else:
+        head = f"sweep {out}: no sweep is running on it; every run has ended"
+    lines = [head, *run_table(status.runs, status.records, status.steps),
+             *failure_lines(status.runs, status.records)]
+    folder_of = {run.run_id: run.folder for run in status.runs}
+    progress = _Progress(None, len(status.runs), {
+        run.run_id: "train" if run.shared_training is None else "score" for run in status.runs},
+        clock=time.time, progress_of=lambda run_id: training_progress(folder_of[run_id]),
+        launch_until=until.timestamp() if status.driving and until is not None else None)
+    for run in status.runs:
+        record = status.records[run.run_id]
+        if record.status == "done":
+            progress.add_wall(run.run_id, record.wall_time_s, record.evaluate_wall_time_s)
+    # The ETA at the driver's own pace; for a stopped sweep, at the pace it last ran (or one at a time).
+    line = progress.line(status.records, capacity or max(1, status.count("running")))
+    if not status.driving and left:
+        line += f" if run again with {capacity or 1} run(s) at once"
+    return [*lines, line]
