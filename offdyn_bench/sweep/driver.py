@@ -37,6 +37,7 @@ from offdyn_bench.sweep.runs import (
     Run,
     expand,
     finished_evaluation,
+    mean_return,
     official_datasets,
     run_finished,
     settings_conflict,
@@ -384,8 +385,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 evaluation = finished_evaluation(run) if run_finished(run) else None
                 if evaluation is not None:
                     record.status, record.error = "done", None
-                    returns = [float(x) for seed in evaluation["seeds"] for x in seed["returns"]]
-                    record.mean_return = sum(returns) / len(returns)
+                    record.mean_return = mean_return(evaluation)
                 else:
                     record.status = "pending"
                     pending.append(run)

@@ -24,7 +24,14 @@ from pathlib import Path
 from typing import Any
 
 from baselines.run_folder import LOCK_FILE
-from offdyn_bench.sweep.runs import RESULT_FILE, Run, evaluation_path, finished_evaluation, settings_conflict
+from offdyn_bench.sweep.runs import (
+    RESULT_FILE,
+    Run,
+    evaluation_path,
+    finished_evaluation,
+    mean_return,
+    settings_conflict,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,8 +125,7 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
         record = finished_evaluation(run)
         if record is None:  # removed or replaced while the source side ran
             return outcome(False, "check", error=f"{evaluation_path(run, 'target')} changed during the attempt")
-        returns = [float(x) for seed in record["seeds"] for x in seed["returns"]]
-        return outcome(True, "check", mean_return=sum(returns) / len(returns))
+        return outcome(True, "check", mean_return=mean_return(record))
 
 
 def _wait_for_other_trainer(folder: Path, log: Any) -> None:

@@ -315,6 +315,12 @@ def run_finished(run: Run) -> bool:
         not run.source_evaluate_args or finished_evaluation(run, side="source") is not None)
 
 
+def mean_return(evaluation: dict[str, Any]) -> float:
+    """The mean return over every seed's episodes of a record :func:`finished_evaluation` accepted."""
+    returns = [float(x) for seed in evaluation["seeds"] for x in seed["returns"]]
+    return sum(returns) / len(returns)
+
+
 def finished_evaluation(run: Run, side: str = "target") -> dict[str, Any] | None:
     """The run's ``evaluation.json`` (``side="source"``: ``evaluation-source.json``) when it is a
     complete evaluation of exactly this run (its method, task, seeds, steps and episode count, on

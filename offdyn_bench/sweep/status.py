@@ -24,7 +24,7 @@ from offdyn_bench.sweep.driver import (
     run_table,
     sweep_running,
 )
-from offdyn_bench.sweep.runs import Run, expand, finished_evaluation, run_finished
+from offdyn_bench.sweep.runs import Run, expand, finished_evaluation, mean_return, run_finished
 from offdyn_bench.sweep.spec import SweepSpec
 
 
@@ -64,8 +64,7 @@ def read_status(spec: SweepSpec) -> SweepStatus:
         if run_finished(run):
             record.status = "done"
             evaluation = finished_evaluation(run)
-            returns = [float(x) for seed in evaluation["seeds"] for x in seed["returns"]] if evaluation else []
-            record.mean_return = sum(returns) / len(returns) if returns else None
+            record.mean_return = mean_return(evaluation) if evaluation is not None else None
         elif said == "failed":
             record.status = "failed"
             record.error = entry.get("error") if isinstance(entry.get("error"), str) else None
