@@ -170,6 +170,9 @@ class TrainingProgress:
     compute: TrainingCompute | None
     """What ``result.json`` records once it has finished (None before, or from before trainings
     recorded compute)."""
+    spent: tuple[float, float] | None = None
+    """Wall and CPU seconds at its last learning-curve line, over every attempt (None before the
+    first line, or where that line's times are not non-negative numbers)."""
 
 
 def training_progress(out: Path) -> TrainingProgress | None:
@@ -181,25 +184,28 @@ def training_progress(out: Path) -> TrainingProgress | None:
         return None
     if not _POSITIVE_INTEGER.accepts(steps):
         return None
-    points: list[tuple[int, Any]] = []
+    points: list[tuple[int, Any, Any]] = []
     try:
         for line in (out / METRICS_FILE).read_text(errors="replace").splitlines():
             try:
                 entry = json.loads(line)
-                step, wall = entry.get("step"), entry.get("wall_time_s")
+                step, wall, cpu = entry.get("step"), entry.get("wall_time_s"), entry.get("cpu_time_s")
             except (ValueError, AttributeError):
                 continue  # a line cut off by a kill
             if _POSITIVE_INTEGER.accepts(step) and step <= steps:
-                points.append((step, wall))
+                points.append((step, wall, cpu))
     except OSError:
         pass  # no curve yet: nothing evaluated
     points.sort(key=lambda point: point[0])
     per_run = None
     if len(points) >= 2:
-        (step_a, wall_a), (step_b, wall_b) = points[-2:]
+        (step_a, wall_a, _), (step_b, wall_b, _) = points[-2:]
         if FINITE.accepts(wall_a) and FINITE.accepts(wall_b) and step_b > step_a and wall_b > wall_a:
             per_run = (wall_b - wall_a) / (step_b - step_a) * steps
-    return TrainingProgress(points[-1][0] / steps if points else 0.0, per_run, read_training_compute(out))
+    spent = None
+    if points and NON_NEGATIVE.accepts(points[-1][1]) and NON_NEGATIVE.accepts(points[-1][2]):
+        spent = (float(points[-1][1]), float(points[-1][2]))
+    return TrainingProgress(points[-1][0] / steps if points else 0.0, per_run, read_training_compute(out), spent)
 
 
 def read_training_compute(out: Path) -> TrainingCompute | None:

@@ -78,6 +78,9 @@ def read_status(spec: SweepSpec) -> SweepStatus:
             steps[run.run_id] = "100%"
         elif progress is not None:
             steps[run.run_id] = f"{100 * progress.fraction:.0f}%"
+            if progress.spent is not None and progress.spent[0] > record.wall_time_s:
+                # The state file counts finished attempts; a training under way, its own count so far.
+                record.wall_time_s, record.cpu_time_s = progress.spent
     return SweepStatus(spec, runs, records, steps, driving, driver)
 
 

@@ -131,6 +131,8 @@ def test_training_progress_reads_how_far_a_run_got_its_pace_and_what_it_took(cut
     assert cut.fraction == 90 / 120 and cut.compute is None  # evaluated up to step 90, unfinished
     # The pace between the last two curve lines, over the whole run's 120 steps.
     assert cut.seconds_per_run == pytest.approx((curve[2]["wall_time_s"] - curve[1]["wall_time_s"]) / 30 * 120)
+    # What it took so far, over its attempts: the last curve line's counts.
+    assert cut.spent == (curve[2]["wall_time_s"], curve[2]["cpu_time_s"])
     with open(cut_run / "metrics.jsonl", "a") as f:
         f.write('{"step": 120, "target_ret')  # a line cut off by a kill is no progress
     assert training_progress(cut_run) == cut

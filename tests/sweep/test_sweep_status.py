@@ -44,7 +44,8 @@ def _half_trained(out: Path, run_id: str, steps_done: int, of_steps: int = 300) 
     folder.mkdir(parents=True)
     (folder / "config.json").write_text(json.dumps({"steps": of_steps}))
     (folder / "metrics.jsonl").write_text("".join(
-        json.dumps({"step": step, "wall_time_s": step / 10.0}) + "\n" for step in range(50, steps_done + 1, 50)))
+        json.dumps({"step": step, "wall_time_s": step / 10.0, "cpu_time_s": step / 12.5}) + "\n"
+        for step in range(50, steps_done + 1, 50)))
 
 
 def _state(out: Path, runs: dict[str, dict], driver: dict | None = None) -> None:
@@ -94,7 +95,8 @@ def test_status_while_a_driver_runs_shows_each_trainings_steps_and_the_start_bef
         lines = _status(spec_path)
     assert lines[0] == (f"sweep {out}: running (pid 4242 on node-7, started {now:%Y-%m-%d %H:%M} UTC; "
                         f"starts runs until {until:%Y-%m-%d %H:%M} UTC)")
-    assert _row(lines, SEED_0)[1:4] == ["running", "50%", "1"]
+    # Its wall and CPU so far: the training's own count at its last curve line (no attempt has ended).
+    assert _row(lines, SEED_0)[1:6] == ["running", "50%", "1", "15s", "12s"]
     assert _row(lines, SEED_1)[1:4] == ["pending", "-", "0"]
     # Seed 0's curve: 50 steps per 5 s, so 30 s a run; half of it left, then a whole run for seed 1.
     assert re.fullmatch(r"sweep: 0/2 done, 1 running, 0 failed, 1 pending; ETA 45s; starts runs for 50m(29|30)s more",
