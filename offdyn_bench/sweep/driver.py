@@ -52,6 +52,17 @@ PROGRESS_EVERY_S = 30.0
 Echo = Callable[[str], None]
 
 
+def _is_seconds(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0
+
+
+def _seconds_of(history: list[Any], key: str) -> float:
+    """The sum of ``key`` over the attempts of a stored history; a value that is not a
+    non-negative finite number (a hand-edited or damaged state file) counts nothing."""
+    return float(sum(attempt[key] for attempt in history
+                     if isinstance(attempt, dict) and _is_seconds(attempt.get(key))))
+
+
 @dataclasses.dataclass
 class RunRecord:
     """One run's line in the state file."""
@@ -74,7 +85,7 @@ class RunRecord:
     def evaluate_wall_time_s(self) -> float | None:
         """Wall time its attempts spent in evaluate commands; None where an attempt predates the count."""
         spent = [a.get("evaluate_wall_time_s") for a in self.history if isinstance(a, dict)]
-        if not spent or not all(isinstance(x, (int, float)) for x in spent):
+        if not spent or not all(_is_seconds(x) for x in spent):
             return None
         return float(sum(spent))
 
@@ -89,8 +100,8 @@ class RunRecord:
             stored_attempts = stored.get("attempts")
             record.attempts = max(len(record.history),
                                   stored_attempts if isinstance(stored_attempts, int) else 0)
-            record.wall_time_s = float(sum(a.get("wall_time_s") or 0.0 for a in record.history if isinstance(a, dict)))
-            record.cpu_time_s = float(sum(a.get("cpu_time_s") or 0.0 for a in record.history if isinstance(a, dict)))
+            record.wall_time_s = _seconds_of(record.history, "wall_time_s")
+            record.cpu_time_s = _seconds_of(record.history, "cpu_time_s")
         return record
 
     def add(self, attempt: int, outcome: AttemptOutcome) -> None:

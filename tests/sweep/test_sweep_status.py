@@ -142,3 +142,28 @@ def test_status_refuses_options_that_would_run_or_write(tmp_path, tiny_spec, wri
         assert result.exit_code == 2
         assert "error: --status only reads where the sweep stands" in result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_a_damaged_state_file_is_read_as_far_as_it_holds_by_status_and_by_the_sweep(finished_sweep, tmp_path,
+                                                                                      tiny_spec, write_spec):
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(finished_sweep.spec.out, out)
+    spec_path = write_spec(tmp_path / "spec.json", tiny_spec(out))
+    damaged = {"status": "running", "attempts": "three",
+               "history": ["not an attempt", {"wall_time_s": "abc", "cpu_time_s": float("nan")},
+                           {"wall_time_s": 12.5, "cpu_time_s": -1, "evaluate_wall_time_s": True}]}
+    _state(out, {SEED_0: damaged, SEED_1: ["not", "a", "record"]},
+           driver={"pid": "x", "host": 7, "started_at": "yesterday", "capacity": "two", "starts_runs_until": "soon"})
+    lines = _status(spec_path)
+    assert lines[0] == f"sweep {out}: no sweep is running on it; every run has ended"
+    # Attempts: its three history entries; times: the one valid number (12.5 s of wall).
+    assert _row(lines, SEED_0)[1:6] == ["done", "100%", "3", "12s", "0s"]
+    assert lines[-1] == "sweep: 2/2 done, 0 running, 0 failed, 0 pending; ETA 0s"
+    # The sweep itself takes the same file, finds both runs done and writes a sound state.
+    result = runner.invoke(app, ["sweep", str(spec_path), "--quiet"])
+    assert result.exit_code == 0, result.output
+    state = json.loads((out / STATE_FILE).read_text())
+    assert {key: state["runs"][key]["status"] for key in (SEED_0, SEED_1)} == {SEED_0: "done", SEED_1: "done"}
+    assert state["runs"][SEED_0]["wall_time_s"] == 12.5 and state["driver"]["pid"] == os.getpid()
