@@ -138,9 +138,14 @@ class SweepReport:
         return [run for run in self.runs if self.records[run.run_id].status == "pending"]
 
 
-def _check_out(out: Path) -> None:
+def check_out_is_folder(out: Path) -> None:
+    """Refuse an ``out`` that exists as something else than a folder."""
     if out.exists() and not out.is_dir():
         raise OffdynError(f"out {str(out)!r} exists and is not a folder; expected the sweep's output folder")
+
+
+def _check_out(out: Path) -> None:
+    check_out_is_folder(out)
     ancestor = out.absolute()
     while not ancestor.exists():
         ancestor = ancestor.parent

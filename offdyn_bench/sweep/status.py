@@ -19,6 +19,7 @@ from offdyn_bench.sweep.driver import (
     STATE_FILE,
     RunRecord,
     _Progress,
+    check_out_is_folder,
     failure_lines,
     read_state,
     run_table,
@@ -51,6 +52,7 @@ class SweepStatus:
 def read_status(spec: SweepSpec) -> SweepStatus:
     """Read the sweep of ``spec`` from its output folder (an empty one: every run pending)."""
     runs = expand(spec)
+    check_out_is_folder(spec.out)
     state = read_state(spec.out / STATE_FILE)
     stored = state.get("runs") if isinstance(state.get("runs"), dict) else {}
     driver = state.get("driver") if isinstance(state.get("driver"), dict) else {}

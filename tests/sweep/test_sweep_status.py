@@ -142,6 +142,10 @@ def test_status_refuses_options_that_would_run_or_write(tmp_path, tiny_spec, wri
         assert result.exit_code == 2
         assert "error: --status only reads where the sweep stands" in result.output
     assert not (tmp_path / "out").exists()
+    (tmp_path / "out").write_text("a file")
+    result = runner.invoke(app, ["sweep", str(spec_path), "--status"])
+    assert result.exit_code == 2 and result.output.startswith(f"error: out '{tmp_path / 'out'}' exists and is not "
+                                                              "a folder; expected the sweep's output folder")
 
 
 def test_a_damaged_state_file_is_read_as_far_as_it_holds_by_status_and_by_the_sweep(finished_sweep, tmp_path,
