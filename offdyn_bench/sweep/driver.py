@@ -496,10 +496,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
 
             submissions: dict[str, list[str]] = {}
             submitted: dict[str, Path] = {}
-            from offdyn_bench.sweep.submission import (
-                leaderboard_blockers,
-                write_submission_folder,
-            )
+            from offdyn_bench.sweep.submission import leaderboard_blockers, write_submission_folder
             from offdyn_bench.sweep.submission import submit as submit_method
 
             for method in spec.methods:
