@@ -16,6 +16,7 @@ import dataclasses
 import datetime
 import errno
 import fcntl
+import heapq
 import json
 import math
 import os
@@ -215,6 +216,17 @@ def format_duration(seconds: float | None) -> str:
     return f"{hours}h{minutes:02d}m" if hours else (f"{minutes}m{secs:02d}s" if minutes else f"{secs}s")
 
 
+def _finish_time(running: list[float], waiting: list[float], capacity: int) -> float:
+    """When the last run ends: the runs in flight hold their slots for the time they have left,
+    and each waiting run, in order, takes the first slot to come free (as the driver starts them).
+    Not the total work over the slots: two runs in flight with 1 and 3 minutes left end in 3."""
+    slots = sorted(running) + [0.0] * max(0, max(1, capacity) - len(running))
+    heapq.heapify(slots)
+    for duration in waiting:
+        heapq.heappush(slots, heapq.heappop(slots) + duration)
+    return max(slots) if slots else 0.0
+
+
 class _Progress:
     """Counts and ETA of the whole sweep, printed on every change and every PROGRESS_EVERY_S.
 
@@ -229,7 +241,8 @@ class _Progress:
     curve), and before any training has finished that pace stands in for the mean. Another
     remaining training with steps done (resumed from a killed sweep) counts the part of the mean
     its remaining steps take; one that has evaluated nothing yet, the part of the mean it has not
-    used since it started."""
+    used since it started. The ETA is when the last of them ends with the runs laid on the
+    sweep's slots as the driver starts them (:func:`_finish_time`)."""
 
     def __init__(self, echo: Echo | None, total: int, kinds: dict[str, str] | None = None,
                  clock: Callable[[], float] = time.monotonic,
@@ -282,6 +295,10 @@ class _Progress:
         return self.looked[run_id]
 
     def line(self, records: dict[str, RunRecord], capacity: int) -> str:
+        return "".join(self._line_and_countdown(records, capacity))
+
+    def _line_and_countdown(self, records: dict[str, RunRecord], capacity: int) -> tuple[str, str]:
+        """The line, and apart from it the ``--start-before`` countdown (it changes every second)."""
         counts = {status: 0 for status in ("done", "running", "failed", "pending")}
         for record in records.values():
             counts[record.status] = counts.get(record.status, 0) + 1
@@ -318,22 +335,26 @@ class _Progress:
                     return max(0.0, expected - (self.clock() - self.started[run_id]))
                 return expected
 
-            work = sum(left(run_id) for run_id in remaining)
-            eta = work / max(1, min(capacity, len(remaining)))
-        limit = ""
-        if self.launch_until is not None:
-            limit = (f"; starts runs for {format_duration(self.launch_until - self.clock())} more" if launching
-                     else "; starts no more runs (--start-before)")
-        return (f"sweep: {counts['done']}/{self.total} done, {counts['running']} running, {counts['failed']} failed, "
-                f"{counts['pending']} pending; ETA {format_duration(eta)}{limit}")
+            eta = _finish_time([left(run_id) for run_id in remaining if records[run_id].status == "running"],
+                               [left(run_id) for run_id in remaining if records[run_id].status != "running"],
+                               capacity)
+        countdown = ""
+        text = (f"sweep: {counts['done']}/{self.total} done, {counts['running']} running, {counts['failed']} failed, "
+                f"{counts['pending']} pending; ETA {format_duration(eta)}")
+        if self.launch_until is not None and launching:
+            countdown = f"; starts runs for {format_duration(self.launch_until - self.clock())} more"
+        elif self.launch_until is not None:
+            text += "; starts no more runs (--start-before)"
+        return text, countdown
 
     def show(self, records: dict[str, RunRecord], capacity: int, force: bool = False) -> None:
         if self.echo is None:
             return
-        text = self.line(records, capacity)
+        text, countdown = self._line_and_countdown(records, capacity)
         now = time.monotonic()
+        # A countdown alone is no change: it would print a line at every wait of the driver's loop.
         if force or text != self.last_line or now - self.last_time >= PROGRESS_EVERY_S:
-            self.echo(text)
+            self.echo(text + countdown)
             self.last_line, self.last_time = text, now
 
 

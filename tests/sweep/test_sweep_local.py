@@ -270,7 +270,8 @@ def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
                                                        {"evaluate_wall_time_s": 1.0}]).evaluate_wall_time_s is None
     progress.add_wall("score-0", 6.0)
     assert progress.line(records, capacity=1) == "sweep: 2/6 done, 1 running, 0 failed, 3 pending; ETA 20m18s"
-    assert progress.line(records, capacity=2).endswith("ETA 10m09s")  # two workers share the work
+    # Two workers: the scoring runs go beside the training, which ends last (a run is not split).
+    assert progress.line(records, capacity=2).endswith("ETA 20m00s")
     # A running training 15 minutes in has 5 of its 20 left; one past the mean counts as about done.
     now = [100.0]
     progress.clock = lambda: now[0]
@@ -331,7 +332,8 @@ def test_before_any_training_finishes_the_eta_takes_the_running_ones_pace():
     looks["running"] = TrainingProgress(0.5, 2000.0, None)  # at its latest pace a run takes 2000 s
     # Half of one is left, and all of the other.
     assert progress.line(records, capacity=1).endswith("ETA 50m00s")
-    assert progress.line(records, capacity=2).endswith("ETA 25m00s")
+    # With two slots the other starts at once beside it and ends last: a whole run, 2000 s.
+    assert progress.line(records, capacity=2).endswith("ETA 33m20s")
 
 
 def test_a_datasets_sweep_trains_one_run_per_quality_and_submits_none(tmp_path, tiny_spec, monkeypatch):
@@ -354,3 +356,28 @@ def test_a_datasets_sweep_trains_one_run_per_quality_and_submits_none(tmp_path, 
     assert not (spec.out / "submission").exists()
     text = "\n".join(summary_lines(report))
     assert "cql: not a leaderboard submission: it trains on 2 target dataset qualities per task" in text
+
+
+def test_the_eta_is_when_the_last_run_ends_on_the_sweeps_slots():
+    from offdyn_bench.sweep.driver import RunRecord, _finish_time, _Progress
+
+    # Two runs in flight with 1 and 3 minutes left end in 3 minutes, not in the 2 of their work over two slots.
+    assert _finish_time([60.0, 180.0], [], capacity=2) == 180.0
+    # A waiting run takes the first slot to come free: 60 + 100; the third, the next: 150 + 50.
+    assert _finish_time([60.0, 150.0], [100.0, 50.0], capacity=2) == 200.0
+    assert _finish_time([], [30.0, 30.0, 30.0], capacity=2) == 60.0
+    assert _finish_time([], [30.0], capacity=0) == 30.0  # no slot reported: still one at a time
+    assert _finish_time([], [], capacity=4) == 0.0
+
+    def record(status: str) -> RunRecord:
+        return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
+
+    records = {"a": record("done"), "b": record("running"), "c": record("running")}
+    now = [0.0]
+    progress = _Progress(None, len(records), clock=lambda: now[0])
+    progress.add_wall("a", 600.0)
+    progress.start("b")
+    now[0] = 540.0
+    progress.start("c")
+    now[0] = 600.0  # b is about done, c has 9 of its 10 minutes left
+    assert progress.line(records, capacity=2).endswith("ETA 9m00s")

@@ -138,3 +138,30 @@ def test_past_the_limit_the_eta_counts_only_the_runs_in_flight():
     now[0] = 3900.0  # past the limit: the sweep ends when b does, c and d left for the next sweep
     assert progress.line(records, capacity=1) == ("sweep: 1/4 done, 1 running, 0 failed, 2 pending; ETA 0s; "
                                                   "starts no more runs (--start-before)")
+
+
+def test_the_countdown_alone_prints_no_new_progress_line():
+    """The progress line is printed on a change (or every 30 s); the seconds left to start runs
+    change at every wait of the driver's loop and would otherwise print a line each time."""
+    from offdyn_bench.sweep.driver import RunRecord, _Progress
+
+    def record(status: str) -> RunRecord:
+        return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
+
+    records = {"a": record("running"), "b": record("pending")}
+    now = [0.0]
+    lines: list[str] = []
+    progress = _Progress(lines.append, len(records), clock=lambda: now[0], launch_until=3600.0)
+    progress.start("a")
+    for second in (1.0, 6.0, 11.0):  # the driver's loop waits 5 s between looks
+        now[0] = second
+        progress.show(records, capacity=1)
+    assert lines == ["sweep: 0/2 done, 1 running, 0 failed, 1 pending; ETA ?; starts runs for 59m59s more"]
+    records["a"].status = "done"
+    progress.add_wall("a", 600.0)
+    now[0] = 16.0
+    progress.show(records, capacity=1)  # a real change prints, with the countdown as it stands
+    now[0] = 3700.0
+    progress.show(records, capacity=1)  # so does passing the limit
+    assert lines[1:] == ["sweep: 1/2 done, 0 running, 0 failed, 1 pending; ETA 10m00s; starts runs for 59m44s more",
+                         "sweep: 1/2 done, 0 running, 0 failed, 1 pending; ETA 0s; starts no more runs (--start-before)"]
