@@ -644,6 +644,13 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     assert friction.better_return == pytest.approx(3746.9, abs=0.05)
     assert friction.worse_return == pytest.approx(2054.1, abs=0.05)
     assert friction.probability_of_improvement == 1.0  # every H2O seed above every DARC seed
+    joint_noise = next(c for c in board
+                       if c.claim.name == "h2o > darc" and c.task == "halfcheetah-h2o-joint-noise-1.0")
+    assert joint_noise.dataset == "offdyn/halfcheetah-h2o-joint-noise-1p0/medium-v0"
+    assert (joint_noise.better_seeds, joint_noise.worse_seeds, joint_noise.holds) == (5, 5, True)
+    assert joint_noise.better_return == pytest.approx(3155.8, abs=0.05)
+    assert joint_noise.worse_return == pytest.approx(242.8, abs=0.05)
+    assert joint_noise.probability_of_improvement == 1.0
     cql = next(c for c in board if c.claim.name == "h2o > cql" and c.task == "halfcheetah-h2o-gravity-2.0")
     assert cql.dataset == "offdyn/halfcheetah-h2o-gravity-2p0/medium-v0"
     assert (cql.better_seeds, cql.worse_seeds, cql.holds) == (5, 1, True)  # one CQL seed: a tie, not a cell read
