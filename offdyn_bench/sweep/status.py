@@ -98,7 +98,9 @@ def status_lines(status: SweepStatus, spec_path: str = "SPEC") -> list[str]:
     """Who is running the sweep, a line per run, its failures and the progress line with an ETA."""
     out, driver = status.spec.out, status.driver
     started, until = _moment(driver.get("started_at")), _moment(driver.get("starts_runs_until"))
-    capacity = driver.get("capacity") if isinstance(driver.get("capacity"), int) and driver["capacity"] > 0 else None
+    stored_capacity = driver.get("capacity")
+    capacity = (stored_capacity if isinstance(stored_capacity, int) and not isinstance(stored_capacity, bool)
+                and stored_capacity > 0 else None)
     left = status.count("pending") + status.count("running")
     if status.driving:
         who = (f"pid {driver['pid']} on {driver['host']}" if isinstance(driver.get("pid"), int)

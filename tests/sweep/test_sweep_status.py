@@ -159,7 +159,7 @@ def test_a_damaged_state_file_is_read_as_far_as_it_holds_by_status_and_by_the_sw
                "history": ["not an attempt", {"wall_time_s": "abc", "cpu_time_s": float("nan")},
                            {"wall_time_s": 12.5, "cpu_time_s": -1, "evaluate_wall_time_s": True}]}
     _state(out, {SEED_0: damaged, SEED_1: ["not", "a", "record"]},
-           driver={"pid": "x", "host": 7, "started_at": "yesterday", "capacity": "two", "starts_runs_until": "soon"})
+           driver={"pid": "x", "host": 7, "started_at": "yesterday", "capacity": True, "starts_runs_until": "soon"})
     lines = _status(spec_path)
     assert lines[0] == f"sweep {out}: no sweep is running on it; every run has ended"
     # Attempts: its three history entries; times: the one valid number (12.5 s of wall).
