@@ -96,6 +96,10 @@ def holds_files(out: Path) -> bool:
     return any(p.name != LOCK_FILE for p in out.iterdir())
 
 
+LOCK_HELD_ERRNOS = (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+"""What a non-blocking ``flock`` fails with when another descriptor holds the lock."""
+
+
 @contextmanager
 def exclusive_folder_lock(folder: Path, lock_file: str, in_use: str) -> Iterator[None]:
     """Hold an exclusive lock on ``folder`` (created if missing) through ``lock_file`` for the
@@ -110,7 +114,7 @@ def exclusive_folder_lock(folder: Path, lock_file: str, in_use: str) -> Iterator
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:
-            if error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            if error.errno in LOCK_HELD_ERRNOS:
                 raise OffdynError(in_use) from None
             raise OffdynError(f"cannot lock folder {str(folder)!r}: {error.strerror}") from None
         yield

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import errno
 import fcntl
 import heapq
 import json
@@ -28,7 +27,13 @@ from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
-from baselines.run_folder import TrainingProgress, exclusive_folder_lock, training_progress, write_json_atomic
+from baselines.run_folder import (
+    LOCK_HELD_ERRNOS,
+    TrainingProgress,
+    exclusive_folder_lock,
+    training_progress,
+    write_json_atomic,
+)
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, cpus_for, default_workers
 from offdyn_bench.sweep.execute import AttemptOutcome
@@ -170,7 +175,7 @@ def sweep_running(out: Path) -> bool:
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except OSError as error:
-        return error.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+        return error.errno in LOCK_HELD_ERRNOS
     finally:
         os.close(fd)  # releases the probe's lock
     return False

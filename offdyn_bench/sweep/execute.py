@@ -12,7 +12,6 @@ is still training in (a ``train`` orphaned by a killed worker) is waited for, no
 from __future__ import annotations
 
 import dataclasses
-import errno
 import fcntl
 import os
 import shlex
@@ -23,7 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from baselines.run_folder import LOCK_FILE
+from baselines.run_folder import LOCK_FILE, LOCK_HELD_ERRNOS
 from offdyn_bench.sweep.runs import (
     RESULT_FILE,
     Run,
@@ -140,7 +139,7 @@ def _wait_for_other_trainer(folder: Path, log: Any) -> None:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:
-            if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            if error.errno not in LOCK_HELD_ERRNOS:
                 return
             log.write(f"=== waiting: another process is training in {folder} (its {LOCK_FILE} is locked)\n")
             log.flush()
