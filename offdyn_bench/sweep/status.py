@@ -14,7 +14,7 @@ import datetime
 import time
 from typing import Any
 
-from baselines.run_folder import training_progress
+from baselines.run_folder import TrainingProgress, training_progress
 from offdyn_bench.sweep.driver import (
     STATE_FILE,
     RunRecord,
@@ -36,9 +36,9 @@ class SweepStatus:
     spec: SweepSpec
     runs: list[Run]
     records: dict[str, RunRecord]
-    steps: dict[str, str]
-    """Per run id, the share of its training's steps done (``37%``); ``-`` where it has not started
-    or only scores another run's policy."""
+    trainings: dict[str, TrainingProgress | None]
+    """Per run id, how far its training has got (None where none started, or the run only scores
+    another run's policy), read once for the table and the ETA alike."""
     driving: bool
     """Whether a sweep driver holds the output folder's lock now."""
     driver: dict[str, Any]
@@ -47,6 +47,12 @@ class SweepStatus:
 
     def count(self, status: str) -> int:
         return sum(record.status == status for record in self.records.values())
+
+    def steps(self) -> dict[str, str]:
+        """Per run id with a training under way or done, the share of its steps done (``37%``)."""
+        steps = {run_id: f"{100 * progress.fraction:.0f}%" for run_id, progress in self.trainings.items()
+                 if progress is not None}
+        return steps | {run_id: "100%" for run_id, record in self.records.items() if record.status == "done"}
 
 
 def read_status(spec: SweepSpec) -> SweepStatus:
@@ -58,7 +64,7 @@ def read_status(spec: SweepSpec) -> SweepStatus:
     driver = state.get("driver") if isinstance(state.get("driver"), dict) else {}
     driving = sweep_running(spec.out)
     records: dict[str, RunRecord] = {}
-    steps: dict[str, str] = {}
+    trainings: dict[str, TrainingProgress | None] = {}
     for run in runs:
         entry = stored.get(run.run_id)
         record = RunRecord.of(run, entry)
@@ -75,15 +81,12 @@ def read_status(spec: SweepSpec) -> SweepStatus:
         else:
             record.status = "pending"
         records[run.run_id] = record
-        progress = training_progress(run.folder) if run.shared_training is None else None
-        if record.status == "done":
-            steps[run.run_id] = "100%"
-        elif progress is not None:
-            steps[run.run_id] = f"{100 * progress.fraction:.0f}%"
-            if progress.spent is not None and progress.spent[0] > record.wall_time_s:
-                # The state file counts finished attempts; a training under way, its own count so far.
-                record.wall_time_s, record.cpu_time_s = progress.spent
-    return SweepStatus(spec, runs, records, steps, driving, driver)
+        progress = trainings[run.run_id] = training_progress(run.folder) if run.shared_training is None else None
+        if (record.status != "done" and progress is not None and progress.spent is not None
+                and progress.spent[0] > record.wall_time_s):
+            # The state file counts finished attempts; a training under way, its own count so far.
+            record.wall_time_s, record.cpu_time_s = progress.spent
+    return SweepStatus(spec, runs, records, trainings, driving, driver)
 
 
 def _moment(text: Any) -> datetime.datetime | None:
@@ -116,12 +119,11 @@ def status_lines(status: SweepStatus, spec_path: str = "SPEC") -> list[str]:
                 f"{spec_path}` to continue (runs cut short resume from their checkpoints)")
     else:
         head = f"sweep {out}: no sweep is running on it; every run has ended"
-    lines = [head, *run_table(status.runs, status.records, status.steps),
+    lines = [head, *run_table(status.runs, status.records, status.steps()),
              *failure_lines(status.runs, status.records)]
-    folder_of = {run.run_id: run.folder for run in status.runs}
     progress = _Progress(None, len(status.runs), {
         run.run_id: "train" if run.shared_training is None else "score" for run in status.runs},
-        clock=time.time, progress_of=lambda run_id: training_progress(folder_of[run_id]),
+        clock=time.time, progress_of=status.trainings.get,
         launch_until=until.timestamp() if status.driving and until is not None else None)
     for run in status.runs:
         record = status.records[run.run_id]
