@@ -105,3 +105,15 @@ def train_process_of():
 def wait_for():
     """``wait_for(condition, timeout=240)``: poll until ``condition()`` is true, or fail."""
     return _wait_for
+
+
+def _run_record(status: str):
+    from offdyn_bench.sweep.driver import RunRecord
+
+    return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
+
+
+@pytest.fixture
+def run_record():
+    """``run_record(status)``: a state-file record with that status and nothing else, for the progress line."""
+    return _run_record

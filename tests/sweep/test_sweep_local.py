@@ -241,18 +241,16 @@ def test_a_spec_changed_under_finished_runs_is_refused_and_changes_nothing(finis
     assert (out / STATE_FILE).read_bytes() == state_before
 
 
-def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
+def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took(run_record):
     # A source-only sweep: one training scored on three more tasks. Counting the three scoring
     # runs as trainings would say 80 minutes; they take seconds.
     from offdyn_bench.sweep.driver import RunRecord, _Progress, format_duration
 
-    def record(status: str) -> RunRecord:
-        return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
 
     kinds = {"train-0": "train", "score-0": "score", "train-1": "train",
              "score-1": "score", "score-2": "score", "score-3": "score"}
-    records = {"train-0": record("done"), "score-0": record("done"), "train-1": record("running"),
-               "score-1": record("pending"), "score-2": record("pending"), "score-3": record("pending")}
+    records = {"train-0": run_record("done"), "score-0": run_record("done"), "train-1": run_record("running"),
+               "score-1": run_record("pending"), "score-2": run_record("pending"), "score-3": run_record("pending")}
     progress = _Progress(None, len(records), kinds)
     assert progress.line(records, capacity=1).endswith("ETA ?")  # nothing finished: no estimate
     progress.add_wall("train-0", 1200.0)
@@ -285,19 +283,17 @@ def test_the_eta_weighs_each_remaining_run_by_the_time_runs_of_its_kind_took():
     assert progress.line(records, capacity=1).endswith("ETA 0s")
 
 
-def test_the_eta_counts_the_steps_a_training_has_left_and_the_whole_time_a_resumed_one_took():
+def test_the_eta_counts_the_steps_a_training_has_left_and_the_whole_time_a_resumed_one_took(run_record):
     from baselines.run_folder import TrainingCompute, TrainingProgress
-    from offdyn_bench.sweep.driver import RunRecord, _Progress, format_duration
+    from offdyn_bench.sweep.driver import _Progress, format_duration
 
-    def record(status: str) -> RunRecord:
-        return RunRecord(method="sac-target", task="t", seeds=[0], folder="f", log="l", status=status)
 
     # done-0 was resumed: the sweep saw its last attempt (700 s); its training counted 1,600 s.
     trainings = {"done-0": TrainingProgress(1.0, 1500.0, TrainingCompute(1600.0, 1550.0, 2, True)),
                  "running": TrainingProgress(0.75, None, None), "resumed": TrainingProgress(0.5, 900.0, None),
                  "fresh": None}
-    records = {"done-0": record("done"), "running": record("running"), "resumed": record("pending"),
-               "fresh": record("pending")}
+    records = {"done-0": run_record("done"), "running": run_record("running"), "resumed": run_record("pending"),
+               "fresh": run_record("pending")}
     progress = _Progress(None, len(records), progress_of=trainings.get)
     progress.add_wall("done-0", 700.0)
     assert progress.walls["train"] == [1600.0]
@@ -317,15 +313,13 @@ def test_the_eta_counts_the_steps_a_training_has_left_and_the_whole_time_a_resum
     assert partial.walls["train"] == [700.0] and found.walls["train"] == []
 
 
-def test_before_any_training_finishes_the_eta_takes_the_running_ones_pace():
+def test_before_any_training_finishes_the_eta_takes_the_running_ones_pace(run_record):
     from baselines.run_folder import TrainingProgress
-    from offdyn_bench.sweep.driver import RunRecord, _Progress
+    from offdyn_bench.sweep.driver import _Progress
 
-    def record(status: str) -> RunRecord:
-        return RunRecord(method="sac-target", task="t", seeds=[0], folder="f", log="l", status=status)
 
     looks = {"running": TrainingProgress(0.05, None, None), "fresh": None}
-    records = {"running": record("running"), "fresh": record("pending")}
+    records = {"running": run_record("running"), "fresh": run_record("pending")}
     progress = _Progress(None, 2, progress_of=looks.get)
     progress.start("running")
     assert progress.line(records, capacity=1).endswith("ETA ?")  # one curve line: no pace yet
@@ -358,8 +352,8 @@ def test_a_datasets_sweep_trains_one_run_per_quality_and_submits_none(tmp_path, 
     assert "cql: not a leaderboard submission: it trains on 2 target dataset qualities per task" in text
 
 
-def test_the_eta_is_when_the_last_run_ends_on_the_sweeps_slots():
-    from offdyn_bench.sweep.driver import RunRecord, _finish_time, _Progress
+def test_the_eta_is_when_the_last_run_ends_on_the_sweeps_slots(run_record):
+    from offdyn_bench.sweep.driver import _finish_time, _Progress
 
     # Two runs in flight with 1 and 3 minutes left end in 3 minutes, not in the 2 of their work over two slots.
     assert _finish_time([60.0, 180.0], [], capacity=2) == 180.0
@@ -369,10 +363,8 @@ def test_the_eta_is_when_the_last_run_ends_on_the_sweeps_slots():
     assert _finish_time([], [30.0], capacity=0) == 30.0  # no slot reported: still one at a time
     assert _finish_time([], [], capacity=4) == 0.0
 
-    def record(status: str) -> RunRecord:
-        return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
 
-    records = {"a": record("done"), "b": record("running"), "c": record("running")}
+    records = {"a": run_record("done"), "b": run_record("running"), "c": run_record("running")}
     now = [0.0]
     progress = _Progress(None, len(records), clock=lambda: now[0])
     progress.add_wall("a", 600.0)

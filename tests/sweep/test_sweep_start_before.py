@@ -121,13 +121,11 @@ def test_a_duration_that_is_not_one_is_refused(text, expected):
         parse_duration(text)
 
 
-def test_past_the_limit_the_eta_counts_only_the_runs_in_flight():
-    from offdyn_bench.sweep.driver import RunRecord, _Progress
+def test_past_the_limit_the_eta_counts_only_the_runs_in_flight(run_record):
+    from offdyn_bench.sweep.driver import _Progress
 
-    def record(status: str) -> RunRecord:
-        return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
 
-    records = {"a": record("done"), "b": record("running"), "c": record("pending"), "d": record("pending")}
+    records = {"a": run_record("done"), "b": run_record("running"), "c": run_record("pending"), "d": run_record("pending")}
     now = [0.0]
     progress = _Progress(None, len(records), clock=lambda: now[0], launch_until=3600.0)
     progress.add_wall("a", 1200.0)
@@ -140,15 +138,13 @@ def test_past_the_limit_the_eta_counts_only_the_runs_in_flight():
                                                   "starts no more runs (--start-before)")
 
 
-def test_the_countdown_alone_prints_no_new_progress_line():
+def test_the_countdown_alone_prints_no_new_progress_line(run_record):
     """The progress line is printed on a change (or every 30 s); the seconds left to start runs
     change at every wait of the driver's loop and would otherwise print a line each time."""
-    from offdyn_bench.sweep.driver import RunRecord, _Progress
+    from offdyn_bench.sweep.driver import _Progress
 
-    def record(status: str) -> RunRecord:
-        return RunRecord(method="sac-source", task="t", seeds=[0], folder="f", log="l", status=status)
 
-    records = {"a": record("running"), "b": record("pending")}
+    records = {"a": run_record("running"), "b": run_record("pending")}
     now = [0.0]
     lines: list[str] = []
     progress = _Progress(lines.append, len(records), clock=lambda: now[0], launch_until=3600.0)
