@@ -1,4 +1,4 @@
-"""``offdyn-bench leaderboard submit | publish-runs | validate | build | serve | token``.
+"""``offdyn-bench leaderboard submit | publish-runs | coverage | validate | build | serve | token``.
 
 Only typer and the standard library are imported here: the CLI imports this module at start, so
 numpy, jsonschema, matplotlib, SQLAlchemy, Starlette and uvicorn load inside the commands.
@@ -99,6 +99,26 @@ def publish_runs_command(
                 typer.echo(f"  {path}")
         for path in report.compute:
             typer.echo(f"compute per run: {path}")
+
+
+@leaderboard_app.command("coverage")
+def coverage_command(
+    spec: Annotated[Path, typer.Argument(
+        help="Sweep spec whose grid to check (e.g. examples/sweeps/reference-lite.yaml).")],
+    reference_runs: Annotated[Optional[Path], typer.Option(
+        "--reference-runs",
+        help="Published reference runs (default: the repository's leaderboard/reference-runs).")] = None,
+) -> None:
+    """How many of a sweep spec's runs the published reference runs hold, and the CPU the rest would take."""
+    with exit_on_error():
+        from leaderboard.coverage import coverage_lines, reference_coverage
+        from leaderboard.reference_runs import REFERENCE_RUNS_DIR
+        from offdyn_bench.sweep.spec import load_spec
+
+        root = reference_runs if reference_runs is not None else REFERENCE_RUNS_DIR
+        coverage = reference_coverage(load_spec(spec), root)
+        for line in coverage_lines(coverage):
+            typer.echo(line)
 
 
 @leaderboard_app.command("validate")

@@ -1,0 +1,154 @@
+"""`leaderboard coverage`: a sweep spec's grid against the published reference runs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from leaderboard.cli import leaderboard_app
+from leaderboard.coverage import coverage_lines, reference_coverage
+from leaderboard.reference_runs import REFERENCE_RUNS_DIR
+from leaderboard.submission import SubmissionError
+from offdyn_bench.sweep import parse_spec
+
+H2O_GRAVITY = "halfcheetah-h2o-gravity-2.0"
+HOPPER_TASKS = ["hopper-gravity-0.5", "hopper-friction-0.5"]
+
+
+def spec_of(tmp_path: Path, **fields: object):
+    data = {"seeds": 5, "track": "offline-target", "budget": "lite", "out": str(tmp_path / "out")} | fields
+    return parse_spec(data, source="test spec")
+
+
+def copy_published(tmp_path: Path, *parts: str) -> Path:
+    """The published runs of ``lite/<parts>`` (and the compute file) under a root of their own."""
+    root = tmp_path / "published"
+    (root / "lite").mkdir(parents=True)
+    shutil.copy(REFERENCE_RUNS_DIR / "lite" / "compute.json", root / "lite" / "compute.json")
+    for part in parts:
+        shutil.copytree(REFERENCE_RUNS_DIR / "lite" / part, root / "lite" / part)
+    return root
+
+
+def test_the_h2o_cell_counts_the_published_seeds_and_prices_the_missing_ones(tmp_path):
+    spec = spec_of(tmp_path, methods=["h2o", "darc", "cql"], tasks=[H2O_GRAVITY], datasets=["medium", "medium-replay"])
+    coverage = reference_coverage(spec)
+    medium, replay = (H2O_GRAVITY, "medium-v0"), (H2O_GRAVITY, "medium-replay-v0")
+    assert coverage.rows == (medium, replay)
+    assert coverage.published[("h2o", *medium)] == (0, 1, 2, 3, 4)
+    assert coverage.published[("darc", *medium)] == (0, 1, 2, 3, 4)
+    published_cql = coverage.published[("cql", *medium)]
+    assert 0 in published_cql and len(published_cql) < 5  # seed 0 published; the rest still to run
+    assert coverage.published[("h2o", *replay)] == ()
+    assert (coverage.runs_total, coverage.runs_published) == (30, 10 + len(published_cql))
+    costs = {cost.method: cost for cost in coverage.costs}
+    assert (costs["h2o"].runs_to_go, costs["h2o"].trainings_to_go) == (5, 5)
+    assert costs["cql"].runs_to_go == 10 - len(published_cql)
+    # Priced at the median of the method's own published trainings (compute.json's training counts).
+    compute = json.loads((REFERENCE_RUNS_DIR / "lite" / "compute.json").read_text())["runs"]
+    cql_times = sorted(entry["training"]["cpu_time_s"] for run_id, entry in compute.items()
+                       if run_id.startswith("cql/") and entry.get("training", {}).get("complete"))
+    assert costs["cql"].trainings_counted == len(cql_times) >= 1
+    assert costs["cql"].cpu_to_go_s == pytest.approx(costs["cql"].trainings_to_go * costs["cql"].median_training_cpu_s)
+    assert min(cql_times) <= costs["cql"].median_training_cpu_s <= max(cql_times)
+    assert coverage.others == ()
+
+    lines = coverage_lines(coverage)
+    assert lines[0].startswith(f"test spec at lite, against {REFERENCE_RUNS_DIR / 'lite'}: {coverage.runs_published} "
+                               "of 30 run(s) published")
+    assert lines[1].split() == ["task", "dataset", "h2o", "darc", "cql"]
+    assert lines[3].split() == [H2O_GRAVITY, "medium-v0", "5/5", "5/5", f"{len(published_cql)}/5"]
+    assert lines[4].split() == [H2O_GRAVITY, "medium-replay-v0", "0/5", "0/5", "0/5"]
+    assert lines[5].startswith(f"to go: {30 - coverage.runs_published} run(s), {30 - coverage.runs_published} "
+                               "training(s), about ")
+
+
+def test_rl_on_source_counts_one_training_for_the_tasks_that_share_its_policy(tmp_path):
+    root = copy_published(tmp_path, "sac-source")
+    spec = spec_of(tmp_path, methods=["sac-source"], tasks=HOPPER_TASKS)
+    assert reference_coverage(spec, root).costs[0].runs_to_go == 0
+    assert coverage_lines(reference_coverage(spec, root))[-1] == "every run of the spec is published"
+
+    # Seed 2 gone on both tasks: two runs to go, but one training (the nominal Hopper's seed 2).
+    for task in HOPPER_TASKS:
+        shutil.rmtree(root / "lite" / "sac-source" / task / "seed-2")
+    cost = reference_coverage(spec, root).costs[0]
+    assert (cost.runs_to_go, cost.trainings_to_go) == (2, 1)
+    # A run lacking only its source-side record is not published either: the task's gap needs both.
+    (root / "lite" / "sac-source" / HOPPER_TASKS[0] / "seed-3" / "evaluation-source.json").unlink()
+    coverage = reference_coverage(spec, root)
+    assert coverage.published[("sac-source", HOPPER_TASKS[0], None)] == (0, 1, 4)
+    assert (coverage.costs[0].runs_to_go, coverage.costs[0].trainings_to_go) == (3, 2)
+
+
+def test_a_record_of_another_run_is_listed_not_counted(tmp_path):
+    root = copy_published(tmp_path, "dap")
+    spec = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"])
+    assert reference_coverage(spec, root).runs_published == 5
+    # The same runs, scored on 10 episodes: the published 20-episode records are other runs.
+    fewer = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"], evaluation_episodes=10)
+    coverage = reference_coverage(fewer, root)
+    assert coverage.runs_published == 0 and len(coverage.others) == 5
+    path, why = coverage.others[0]
+    assert path == root / "lite" / "dap" / "halfcheetah-friction-5.0" / "seed-0" / "evaluation.json"
+    assert why == "20 episodes per seed, the spec's 10"
+    assert coverage_lines(coverage)[-6] == ("5 published record(s) where the spec's runs belong are other runs "
+                                            "(not counted):")
+    # A run that would train on another dataset than the published one.
+    other_data = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"], dataset="collect:random:5000")
+    why = reference_coverage(other_data, root).others[0][1]
+    assert why == "trained on offdyn/halfcheetah-friction-5p0/source-policy-v0, the spec's run on collect:random:5000"
+
+
+def test_a_hand_edited_record_is_refused(tmp_path):
+    root = copy_published(tmp_path, "dap")
+    edited = root / "lite" / "dap" / "halfcheetah-friction-5.0" / "seed-1" / "evaluation.json"
+    record = json.loads(edited.read_text())
+    record["method"] = "dap-u"
+    edited.write_text(json.dumps(record))
+    spec = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"])
+    with pytest.raises(SubmissionError, match=r"seed-1/evaluation.json: holds 'dap-u' on 'halfcheetah-friction-5.0', "
+                                              r"but its folder names 'dap'"):
+        reference_coverage(spec, root)
+    edited.write_text("{not json")
+    with pytest.raises(SubmissionError, match=r"seed-1/evaluation.json: unreadable .*expected an evaluation record"):
+        reference_coverage(spec, root)
+
+
+def test_a_method_without_a_counted_training_is_not_priced(tmp_path):
+    root = copy_published(tmp_path)  # the compute file alone: nothing published
+    (root / "lite" / "compute.json").write_text(json.dumps({"runs": {}}))
+    spec = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"], seeds=[0, 1])
+    coverage = reference_coverage(spec, root)
+    assert coverage.costs[0].cpu_to_go_s is None
+    lines = coverage_lines(coverage)
+    assert lines[-2] == "to go: 2 run(s), 2 training(s), about 0s of CPU for all but dap (each method's median " \
+                        "training CPU at this budget, from compute.json):"
+    assert lines[-1] == "  dap: 2 run(s), 2 training(s) not estimated: no published training of it counted its compute"
+    (root / "lite" / "compute.json").write_text("[1, 2]")
+    with pytest.raises(SubmissionError, match=r"compute.json: unreadable .*expected publish-runs' compute file"):
+        reference_coverage(spec, root)
+
+
+def test_the_command_and_its_refusals(tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(f"methods: [dap, dap-u]\ntasks: [halfcheetah-friction-5.0]\nseeds: 5\ntrack: offline-target\n"
+                    f"budget: lite\nout: {tmp_path / 'out'}\n")
+    result = CliRunner().invoke(leaderboard_app, ["coverage", str(spec)])
+    assert result.exit_code == 0, result.output
+    assert "10 of 10 run(s) published" in result.output
+    assert result.output.splitlines()[-1] == "every run of the spec is published"
+    assert not (tmp_path / "out").exists()  # reads; runs nothing, creates nothing
+
+    steps = tmp_path / "steps.yaml"
+    steps.write_text(spec.read_text().replace("budget: lite", "steps: 300"))
+    result = CliRunner().invoke(leaderboard_app, ["coverage", str(steps)])
+    assert result.exit_code == 2
+    assert "sets steps, not a protocol budget" in result.output
+    result = CliRunner().invoke(leaderboard_app, ["coverage", str(spec), "--reference-runs", str(tmp_path / "none")])
+    assert result.exit_code == 2
+    assert f"{tmp_path / 'none'}: not a folder; expected published reference runs" in result.output
