@@ -22,9 +22,9 @@ import json
 import statistics
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
 
 from baselines.run_folder import TrainingCompute
+from leaderboard.assemble import read_evaluation_strict
 from leaderboard.reference_runs import COMPUTE_FILE, REFERENCE_RUNS_DIR, RECORD_FILES, check_reference_record
 from leaderboard.submission import SubmissionError
 from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
@@ -132,7 +132,7 @@ def _published_difference(spec: SweepSpec, run: Run, budget_dir: Path) -> tuple[
         path = evaluation_path(at_home, side)
         if not path.exists():
             return ()
-        record = _read_record(path)
+        record = read_evaluation_strict(path)
         # A hand edit (a record in another method's folder, a damaged one) is refused outright.
         check_reference_record(path, record, run.method, run.task, folder.name, RECORD_FILES[path.name])
         differs = []
@@ -149,16 +149,6 @@ def _published_difference(spec: SweepSpec, run: Run, budget_dir: Path) -> tuple[
         if differs:
             return path, "; ".join(differs)
     return None
-
-
-def _read_record(path: Path) -> dict[str, Any]:
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as error:
-        raise SubmissionError(f"{path}: unreadable ({error}); expected an evaluation record") from None
-    if not isinstance(record, dict):
-        raise SubmissionError(f"{path}: not an evaluation record (a JSON object)")
-    return record
 
 
 def _published_training_cpu(budget_dir: Path) -> dict[str, list[float]]:

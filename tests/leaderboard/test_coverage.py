@@ -115,7 +115,7 @@ def test_a_hand_edited_record_is_refused(tmp_path):
                                               r"but its folder names 'dap'"):
         reference_coverage(spec, root)
     edited.write_text("{not json")
-    with pytest.raises(SubmissionError, match=r"seed-1/evaluation.json: unreadable .*expected an evaluation record"):
+    with pytest.raises(SubmissionError, match=r"seed-1/evaluation.json: .*not valid JSON"):
         reference_coverage(spec, root)
 
 
