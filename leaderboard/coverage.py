@@ -18,14 +18,14 @@ listed, not counted. A hand-edited record is refused, as everywhere the publishe
 from __future__ import annotations
 
 import dataclasses
-import json
 import statistics
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from baselines.run_folder import TrainingCompute
 from leaderboard.assemble import read_evaluation_strict
-from leaderboard.reference_runs import COMPUTE_FILE, REFERENCE_RUNS_DIR, RECORD_FILES, check_reference_record
+from leaderboard.reference_runs import (REFERENCE_RUNS_DIR, RECORD_FILES, check_reference_record,
+                                       read_published_compute)
 from leaderboard.submission import SubmissionError
 from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
 from offdyn_bench.sweep.driver import format_duration
@@ -153,18 +153,9 @@ def _published_difference(spec: SweepSpec, run: Run, budget_dir: Path) -> tuple[
 
 def _published_training_cpu(budget_dir: Path) -> dict[str, list[float]]:
     """Per method, the CPU seconds of each published training that counted its compute whole."""
-    path = budget_dir / COMPUTE_FILE
-    if not path.exists():
-        return {}
-    try:
-        runs = json.loads(path.read_text())["runs"]
-        if not isinstance(runs, dict):
-            raise TypeError("its runs are not a mapping")
-    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
-        raise SubmissionError(f"{path}: unreadable ({error}); expected publish-runs' compute file") from None
     times: dict[str, list[float]] = {}
-    for run_id, entry in sorted(runs.items()):
-        training = TrainingCompute.parse(entry.get("training")) if isinstance(entry, dict) else None
+    for run_id, entry in sorted(read_published_compute(budget_dir).items()):
+        training = TrainingCompute.parse(entry.get("training"))
         if training is not None and training.complete:
             times.setdefault(run_id.split("/", 1)[0], []).append(training.cpu_time_s)
     return times

@@ -295,14 +295,7 @@ def _compute_documents(runs: dict[str, Any], trained: dict[str, TrainingCompute]
     documents = {}
     for budget_dir, entries in sorted(by_budget.items()):
         path = budget_dir / COMPUTE_FILE
-        stored: dict[str, Any] = {}
-        if path.exists():
-            try:
-                stored = json.loads(path.read_text())["runs"]
-                if not isinstance(stored, dict) or not all(isinstance(entry, dict) for entry in stored.values()):
-                    raise TypeError("its runs are not a mapping of run entries")
-            except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
-                raise SubmissionError(f"{path}: unreadable ({error}); move it away to record compute anew") from None
+        stored = read_published_compute(budget_dir)
         documents[path] = {
             "format": "offdyn-bench/reference-compute", "format_version": 1,
             "note": "Per run, from the sweep's state file: wall and CPU time summed over the attempts it recorded "
@@ -314,6 +307,20 @@ def _compute_documents(runs: dict[str, Any], trained: dict[str, TrainingCompute]
             "runs": dict(sorted((stored | {run_id: stored.get(run_id, {}) | entry
                                            for run_id, entry in entries.items()}).items()))}
     return documents
+
+
+def read_published_compute(budget_dir: Path) -> dict[str, dict[str, Any]]:
+    """The per-run entries of ``budget_dir``'s ``compute.json`` (empty where there is none yet)."""
+    path = budget_dir / COMPUTE_FILE
+    if not path.exists():
+        return {}
+    try:
+        runs = json.loads(path.read_text())["runs"]
+        if not isinstance(runs, dict) or not all(isinstance(entry, dict) for entry in runs.values()):
+            raise TypeError("its runs are not a mapping of run entries")
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
+        raise SubmissionError(f"{path}: unreadable ({error}); move it away to record compute anew") from None
+    return runs
 
 
 @dataclasses.dataclass(frozen=True)

@@ -130,7 +130,7 @@ def test_a_method_without_a_counted_training_is_not_priced(tmp_path):
                         "training CPU at this budget, from compute.json):"
     assert lines[-1] == "  dap: 2 run(s), 2 training(s) not estimated: no published training of it counted its compute"
     (root / "lite" / "compute.json").write_text("[1, 2]")
-    with pytest.raises(SubmissionError, match=r"compute.json: unreadable .*expected publish-runs' compute file"):
+    with pytest.raises(SubmissionError, match=r"compute.json: unreadable .*; move it away to record compute anew"):
         reference_coverage(spec, root)
 
 
