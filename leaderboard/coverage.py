@@ -21,6 +21,7 @@ import dataclasses
 import statistics
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from baselines.run_folder import TrainingCompute
 from leaderboard.assemble import read_evaluation_strict
@@ -29,7 +30,7 @@ from leaderboard.reference_runs import (REFERENCE_RUNS_DIR, RECORD_FILES, check_
 from leaderboard.submission import SubmissionError
 from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
 from offdyn_bench.sweep.driver import format_duration
-from offdyn_bench.sweep.runs import Run, evaluation_path, expand, run_label
+from offdyn_bench.sweep.runs import Run, expand
 from offdyn_bench.sweep.spec import SweepSpec
 
 Row = tuple[str, str | None]
@@ -41,7 +42,7 @@ class MethodCost:
     """What a method's missing runs need."""
 
     method: str
-    runs_to_go: int
+    seeds_to_go: int
     trainings_to_go: int
     """Distinct trainings behind the missing runs: RL on source trains once per source and seed, so
     runs that score one policy on several tasks count it once."""
@@ -50,6 +51,8 @@ class MethodCost:
     ``compute.json``; None when none counted its compute."""
     trainings_counted: int
     """How many published trainings that median is over."""
+    unpriced_because: str = ""
+    """Why there is no median (empty where there is one)."""
 
     @property
     def cpu_to_go_s(self) -> float | None:
@@ -74,16 +77,18 @@ class Coverage:
     costs: tuple[MethodCost, ...]
 
     @property
-    def runs_total(self) -> int:
+    def seeds_wanted(self) -> int:
         return sum(len(seeds) for seeds in self.wanted.values())
 
     @property
-    def runs_published(self) -> int:
+    def seeds_published(self) -> int:
         return sum(len(seeds) for seeds in self.published.values())
 
 
 def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Coverage:
-    """The spec's runs against the reference runs published under ``root`` at the spec's budget."""
+    """The spec's runs against the reference runs published under ``root`` at the spec's budget,
+    seed by seed: a seed counts when a published record of that seed is the spec's run, whichever
+    seeds its run trained beside it (``seed-3``, or ``seeds-0-4`` from a GPU sweep)."""
     if spec.budget is None:
         raise SubmissionError(f"{spec.source}: sets steps, not a protocol budget; reference runs are published "
                               "per budget (lite, full): give the spec a budget")
@@ -94,71 +99,103 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     runs = expand(spec)
     wanted: dict[tuple[str, str, str | None], list[int]] = {}
     published: dict[tuple[str, str, str | None], list[int]] = {}
-    others: list[tuple[Path, str]] = []
+    others: dict[Path, str] = {}
     missing: list[Run] = []
     for run in runs:
         key = (run.method, run.task, run.dataset_tag)
         wanted.setdefault(key, []).extend(run.seeds)
-        published.setdefault(key, [])
-        difference = _published_difference(spec, run, budget_dir)
-        if difference is None:
-            published[key].extend(run.seeds)
-            continue
-        missing.append(run)
-        if difference:
-            others.append(difference)
-    counted = _published_training_cpu(budget_dir)
+        records = _published_records(budget_dir, run)
+        complete = True
+        for seed in run.seeds:
+            found = [records[seed, side] for side in _sides(run) if (seed, side) in records]
+            differs = {path: why for path, record in found if (why := _difference(spec, run, record))}
+            others.update(differs)
+            if len(found) == len(_sides(run)) and not differs:
+                published.setdefault(key, []).append(seed)
+            else:
+                complete = False
+        if not complete:
+            missing.append(run)
+    counted = _published_training_cpu(budget_dir, spec.seeds_per_run) if spec.device == "cpu" else {}
     costs = []
     for method in spec.methods:
         lacking = [run for run in missing if run.method == method]
         trainings = {run.training_folder for run in lacking}
         times = counted.get(method, [])
-        costs.append(MethodCost(method, len(lacking), len(trainings),
-                                statistics.median(times) if times else None, len(times)))
+        why = ("" if times else f"the spec trains on {spec.device}, and the published compute is CPU time"
+               if spec.device != "cpu" else f"no published training of it ({spec.seeds_per_run} seed(s) per run) "
+               "counted its compute")
+        seeds_to_go = sum(len(seeds) - len(published.get(key, ())) for key, seeds in wanted.items() if key[0] == method)
+        costs.append(MethodCost(method, seeds_to_go, len(trainings),
+                                statistics.median(times) if times else None, len(times), why))
     rows = tuple(dict.fromkeys((task, tag) for _, task, tag in wanted))
     return Coverage(spec.source, spec.budget, budget_dir, tuple(spec.methods), rows,
                     {key: tuple(sorted(seeds)) for key, seeds in wanted.items()},
-                    {key: tuple(sorted(seeds)) for key, seeds in published.items()},
-                    tuple(others), tuple(costs))
+                    {key: tuple(sorted(published.get(key, ()))) for key in wanted},
+                    tuple(sorted(others.items())), tuple(costs))
 
 
-def _published_difference(spec: SweepSpec, run: Run, budget_dir: Path) -> tuple[Path, str] | tuple[()] | None:
-    """None: ``run``'s records are published; ``()``: nothing is published at its place;
-    ``(path, what differs)``: a record of another run is."""
-    folder = budget_dir / run.method / run.task / run_label(run.seeds, run.dataset_tag)
-    at_home = dataclasses.replace(run, folder=folder)
-    sides = ["target"] + (["source"] if run.source_evaluate_args else [])
-    for side in sides:
-        path = evaluation_path(at_home, side)
-        if not path.exists():
-            return ()
-        record = read_evaluation_strict(path)
-        # A hand edit (a record in another method's folder, a damaged one) is refused outright.
-        check_reference_record(path, record, run.method, run.task, folder.name, RECORD_FILES[path.name])
-        differs = []
-        if record.get("steps") != run.steps:
-            differs.append(f"{record.get('steps')} training steps, the spec's {run.steps}")
-        episodes = sorted({len(seed["returns"]) for seed in record["seeds"]})
-        if episodes != [run.evaluation_episodes]:
-            differs.append(f"{'/'.join(map(str, episodes))} episodes per seed, the spec's {run.evaluation_episodes}")
-        trained_on = run.settings.get("dataset") or NO_DATASET
-        if dataset_label(record) != trained_on:
-            differs.append(f"trained on {dataset_label(record)}, the spec's run on {trained_on}")
-        if record.get("track") != spec.track:
-            differs.append(f"track {record.get('track')!r}, the spec's {spec.track!r}")
-        if differs:
-            return path, "; ".join(differs)
-    return None
+def _sides(run: Run) -> tuple[str, ...]:
+    """The records a run owes: the target's, and for RL on source its source side's too."""
+    return ("target", "source") if run.source_evaluate_args else ("target",)
 
 
-def _published_training_cpu(budget_dir: Path) -> dict[str, list[float]]:
-    """Per method, the CPU seconds of each published training that counted its compute whole."""
+def _published_records(budget_dir: Path, run: Run) -> dict[tuple[int, str], tuple[Path, dict[str, Any]]]:
+    """(seed, side) -> the published record holding it, among the folders of ``run``'s method,
+    task and dataset tag (any seed grouping)."""
+    found: dict[tuple[int, str], tuple[Path, dict[str, Any]]] = {}
+    task_dir = budget_dir / run.method / run.task
+    if not task_dir.is_dir():
+        return found
+    for folder in sorted(task_dir.iterdir()):
+        tag, _, _ = folder.name.rpartition(".")
+        if (tag or None) != run.dataset_tag:
+            continue
+        for path in sorted(folder.glob("evaluation*.json")):
+            side = RECORD_FILES.get(path.name)
+            if side is None:
+                continue
+            record = read_evaluation_strict(path)
+            # A hand edit (a record in another method's folder, a damaged one) is refused outright.
+            check_reference_record(path, record, run.method, run.task, folder.name, side)
+            for entry in record["seeds"]:
+                found[(entry["seed"], side)] = (path, record)
+    return found
+
+
+def _difference(spec: SweepSpec, run: Run, record: dict[str, Any]) -> str:
+    """What makes a published record of ``run``'s method, task and seed another run ('' where nothing does)."""
+    differs = []
+    if record.get("steps") != run.steps:
+        differs.append(f"{record.get('steps')} training steps, the spec's {run.steps}")
+    episodes = sorted({len(seed["returns"]) for seed in record["seeds"]})
+    if episodes != [run.evaluation_episodes]:
+        differs.append(f"{'/'.join(map(str, episodes))} episodes per seed, the spec's {run.evaluation_episodes}")
+    trained_on = run.settings.get("dataset") or NO_DATASET
+    if dataset_label(record) != trained_on:
+        differs.append(f"trained on {dataset_label(record)}, the spec's run on {trained_on}")
+    if record.get("track") != spec.track:
+        differs.append(f"track {record.get('track')!r}, the spec's {spec.track!r}")
+    return "; ".join(differs)
+
+
+def _published_training_cpu(budget_dir: Path, seeds_per_run: int) -> dict[str, list[float]]:
+    """Per method, the CPU seconds of each published training of ``seeds_per_run`` seeds that
+    counted its compute whole."""
     times: dict[str, list[float]] = {}
     for run_id, entry in sorted(read_published_compute(budget_dir).items()):
         training = TrainingCompute.parse(entry.get("training"))
-        if training is not None and training.complete:
+        label = run_id.rsplit("/", 1)[-1].rpartition(".")[2]
+        seeds = 1 if label.startswith("seed-") else _group_size(label)
+        if training is not None and training.complete and seeds == seeds_per_run:
             times.setdefault(run_id.split("/", 1)[0], []).append(training.cpu_time_s)
     return times
+
+
+def _group_size(label: str) -> int | None:
+    """``seeds-0-4`` -> 5 (None for anything else)."""
+    first, _, last = label.removeprefix("seeds-").partition("-")
+    return int(last) - int(first) + 1 if first.isdigit() and last.isdigit() else None
 
 
 def coverage_lines(coverage: Coverage) -> list[str]:
@@ -181,30 +218,31 @@ def coverage_lines(coverage: Coverage) -> list[str]:
                          for i, (cell, width) in enumerate(zip(cells, widths))).rstrip()
 
     heading = (f"{coverage.spec_source} at {coverage.budget}, against {coverage.published_dir}: "
-               f"{coverage.runs_published} of {coverage.runs_total} run(s) published "
+               f"{coverage.seeds_published} of {coverage.seeds_wanted} seed result(s) published "
                "(cells: seeds published / the spec's seeds)")
     lines = [heading, line(headers), line(["-" * w for w in widths])]
     lines += [line(cells) for cells in table]
-    to_go = [cost for cost in coverage.costs if cost.runs_to_go]
+    to_go = [cost for cost in coverage.costs if cost.seeds_to_go]
     if not to_go:
         lines.append("every run of the spec is published")
     else:
-        runs = sum(cost.runs_to_go for cost in to_go)
+        runs = sum(cost.seeds_to_go for cost in to_go)
         trainings = sum(cost.trainings_to_go for cost in to_go)
         known = [cost.cpu_to_go_s for cost in to_go if cost.cpu_to_go_s is not None]
         unknown = [cost.method for cost in to_go if cost.cpu_to_go_s is None]
-        total = f"about {format_duration(sum(known))} of CPU"
-        if unknown:
+        total = "CPU not estimated" if not known else f"about {format_duration(sum(known))} of CPU"
+        if known and unknown:
             total += f" for all but {', '.join(unknown)}"
-        lines.append(f"to go: {runs} run(s), {trainings} training(s), {total} "
+        lines.append(f"to go: {runs} seed result(s), {trainings} training(s), {total} "
                      "(each method's median training CPU at this budget, from compute.json):")
         for cost in to_go:
             if cost.median_training_cpu_s is None:
-                estimate = "not estimated: no published training of it counted its compute"
+                estimate = f"not estimated: {cost.unpriced_because}"
             else:
                 estimate = (f"x {format_duration(cost.median_training_cpu_s)} (median of {cost.trainings_counted}) "
                             f"= {format_duration(cost.cpu_to_go_s or 0.0)}")
-            lines.append(f"  {cost.method}: {cost.runs_to_go} run(s), {cost.trainings_to_go} training(s) {estimate}")
+            lines.append(f"  {cost.method}: {cost.seeds_to_go} seed result(s), {cost.trainings_to_go} training(s) "
+                         f"{estimate}")
     if coverage.others:
         lines.append(f"{len(coverage.others)} published record(s) where the spec's runs belong are other runs "
                      "(not counted):")

@@ -44,10 +44,10 @@ def test_the_h2o_cell_counts_the_published_seeds_and_prices_the_missing_ones(tmp
     published_cql = coverage.published[("cql", *medium)]
     assert 0 in published_cql and len(published_cql) < 5  # seed 0 published; the rest still to run
     assert coverage.published[("h2o", *replay)] == ()
-    assert (coverage.runs_total, coverage.runs_published) == (30, 10 + len(published_cql))
+    assert (coverage.seeds_wanted, coverage.seeds_published) == (30, 10 + len(published_cql))
     costs = {cost.method: cost for cost in coverage.costs}
-    assert (costs["h2o"].runs_to_go, costs["h2o"].trainings_to_go) == (5, 5)
-    assert costs["cql"].runs_to_go == 10 - len(published_cql)
+    assert (costs["h2o"].seeds_to_go, costs["h2o"].trainings_to_go) == (5, 5)
+    assert costs["cql"].seeds_to_go == 10 - len(published_cql)
     # Priced at the median of the method's own published trainings (compute.json's training counts).
     compute = json.loads((REFERENCE_RUNS_DIR / "lite" / "compute.json").read_text())["runs"]
     cql_times = sorted(entry["training"]["cpu_time_s"] for run_id, entry in compute.items()
@@ -58,41 +58,41 @@ def test_the_h2o_cell_counts_the_published_seeds_and_prices_the_missing_ones(tmp
     assert coverage.others == ()
 
     lines = coverage_lines(coverage)
-    assert lines[0].startswith(f"test spec at lite, against {REFERENCE_RUNS_DIR / 'lite'}: {coverage.runs_published} "
-                               "of 30 run(s) published")
+    assert lines[0].startswith(f"test spec at lite, against {REFERENCE_RUNS_DIR / 'lite'}: {coverage.seeds_published} "
+                               "of 30 seed result(s) published")
     assert lines[1].split() == ["task", "dataset", "h2o", "darc", "cql"]
     assert lines[3].split() == [H2O_GRAVITY, "medium-v0", "5/5", "5/5", f"{len(published_cql)}/5"]
     assert lines[4].split() == [H2O_GRAVITY, "medium-replay-v0", "0/5", "0/5", "0/5"]
-    assert lines[5].startswith(f"to go: {30 - coverage.runs_published} run(s), {30 - coverage.runs_published} "
-                               "training(s), about ")
+    to_go = 30 - coverage.seeds_published
+    assert lines[5].startswith(f"to go: {to_go} seed result(s), {to_go} training(s), about ")
 
 
 def test_rl_on_source_counts_one_training_for_the_tasks_that_share_its_policy(tmp_path):
     root = copy_published(tmp_path, "sac-source")
     spec = spec_of(tmp_path, methods=["sac-source"], tasks=HOPPER_TASKS)
-    assert reference_coverage(spec, root).costs[0].runs_to_go == 0
+    assert reference_coverage(spec, root).costs[0].seeds_to_go == 0
     assert coverage_lines(reference_coverage(spec, root))[-1] == "every run of the spec is published"
 
     # Seed 2 gone on both tasks: two runs to go, but one training (the nominal Hopper's seed 2).
     for task in HOPPER_TASKS:
         shutil.rmtree(root / "lite" / "sac-source" / task / "seed-2")
     cost = reference_coverage(spec, root).costs[0]
-    assert (cost.runs_to_go, cost.trainings_to_go) == (2, 1)
+    assert (cost.seeds_to_go, cost.trainings_to_go) == (2, 1)
     # A run lacking only its source-side record is not published either: the task's gap needs both.
     (root / "lite" / "sac-source" / HOPPER_TASKS[0] / "seed-3" / "evaluation-source.json").unlink()
     coverage = reference_coverage(spec, root)
     assert coverage.published[("sac-source", HOPPER_TASKS[0], None)] == (0, 1, 4)
-    assert (coverage.costs[0].runs_to_go, coverage.costs[0].trainings_to_go) == (3, 2)
+    assert (coverage.costs[0].seeds_to_go, coverage.costs[0].trainings_to_go) == (3, 2)
 
 
 def test_a_record_of_another_run_is_listed_not_counted(tmp_path):
     root = copy_published(tmp_path, "dap")
     spec = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"])
-    assert reference_coverage(spec, root).runs_published == 5
+    assert reference_coverage(spec, root).seeds_published == 5
     # The same runs, scored on 10 episodes: the published 20-episode records are other runs.
     fewer = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"], evaluation_episodes=10)
     coverage = reference_coverage(fewer, root)
-    assert coverage.runs_published == 0 and len(coverage.others) == 5
+    assert coverage.seeds_published == 0 and len(coverage.others) == 5
     path, why = coverage.others[0]
     assert path == root / "lite" / "dap" / "halfcheetah-friction-5.0" / "seed-0" / "evaluation.json"
     assert why == "20 episodes per seed, the spec's 10"
@@ -126,9 +126,10 @@ def test_a_method_without_a_counted_training_is_not_priced(tmp_path):
     coverage = reference_coverage(spec, root)
     assert coverage.costs[0].cpu_to_go_s is None
     lines = coverage_lines(coverage)
-    assert lines[-2] == "to go: 2 run(s), 2 training(s), about 0s of CPU for all but dap (each method's median " \
-                        "training CPU at this budget, from compute.json):"
-    assert lines[-1] == "  dap: 2 run(s), 2 training(s) not estimated: no published training of it counted its compute"
+    assert lines[-2] == ("to go: 2 seed result(s), 2 training(s), CPU not estimated (each method's median training CPU "
+                         "at this budget, from compute.json):")
+    assert lines[-1] == ("  dap: 2 seed result(s), 2 training(s) not estimated: no published training of it "
+                         "(1 seed(s) per run) counted its compute")
     (root / "lite" / "compute.json").write_text("[1, 2]")
     with pytest.raises(SubmissionError, match=r"compute.json: unreadable .*; move it away to record compute anew"):
         reference_coverage(spec, root)
@@ -140,7 +141,7 @@ def test_the_command_and_its_refusals(tmp_path):
                     f"budget: lite\nout: {tmp_path / 'out'}\n")
     result = CliRunner().invoke(leaderboard_app, ["coverage", str(spec)])
     assert result.exit_code == 0, result.output
-    assert "10 of 10 run(s) published" in result.output
+    assert "10 of 10 seed result(s) published" in result.output
     assert result.output.splitlines()[-1] == "every run of the spec is published"
     assert not (tmp_path / "out").exists()  # reads; runs nothing, creates nothing
 
@@ -152,3 +153,23 @@ def test_the_command_and_its_refusals(tmp_path):
     result = CliRunner().invoke(leaderboard_app, ["coverage", str(spec), "--reference-runs", str(tmp_path / "none")])
     assert result.exit_code == 2
     assert f"{tmp_path / 'none'}: not a folder; expected published reference runs" in result.output
+
+
+def test_seeds_count_whichever_seeds_their_run_trained_beside(tmp_path):
+    """A spec that trains 5 seeds per run (a GPU sweep's folders, seeds-0-4) finds per-seed records."""
+    root = copy_published(tmp_path, "dap")
+    grouped = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"], seeds_per_run=5)
+    coverage = reference_coverage(grouped, root)
+    assert coverage.published[("dap", "halfcheetah-friction-5.0", None)] == (0, 1, 2, 3, 4)
+    shutil.rmtree(root / "lite" / "dap" / "halfcheetah-friction-5.0" / "seed-3")
+    cost = reference_coverage(grouped, root).costs[0]
+    # One seed missing: the sweep retrains its group, one training of 5 seeds; the published
+    # trainings are one seed each, so they price none of it.
+    assert (cost.seeds_to_go, cost.trainings_to_go, cost.median_training_cpu_s) == (1, 1, None)
+    assert cost.unpriced_because == "no published training of it (5 seed(s) per run) counted its compute"
+    on_gpu = spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"], device="cuda")
+    cost = reference_coverage(on_gpu, root).costs[0]
+    assert (cost.seeds_to_go, cost.trainings_to_go, cost.cpu_to_go_s) == (1, 1, None)
+    assert cost.unpriced_because == "the spec trains on cuda, and the published compute is CPU time"
+    on_cpu = reference_coverage(spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"]), root)
+    assert on_cpu.costs[0].trainings_counted == 5 and on_cpu.costs[0].cpu_to_go_s is not None
