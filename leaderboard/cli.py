@@ -109,7 +109,7 @@ def coverage_command(
         "--reference-runs",
         help="Published reference runs (default: the repository's leaderboard/reference-runs).")] = None,
 ) -> None:
-    """How many of a sweep spec's runs the published reference runs hold, and the CPU the rest would take."""
+    """How many of a sweep spec's seed results the published reference runs hold, and the CPU the rest would take."""
     with exit_on_error():
         from leaderboard.coverage import coverage_lines, reference_coverage
         from leaderboard.reference_runs import REFERENCE_RUNS_DIR
