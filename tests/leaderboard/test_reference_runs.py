@@ -707,3 +707,25 @@ def test_a_folder_that_names_a_dataset_must_hold_a_record_trained_on_it(tmp_path
                        match=r"trained on no target dataset; its folder 'medium-v0.seed-0' names 'medium-v0'"):
         check_reference_record(rl, json.loads(rl.read_text()), "sac-source", "halfcheetah-friction-5.0",
                                "medium-v0.seed-0", "target")
+
+
+def test_protocol_md_matl_numbers_are_the_published_runs():
+    """PROTOCOL.md §9's MATL bullet, recomputed as `protocol score` computes it from the published
+    MATL records and RL on source's target records on the same tasks."""
+    from offdyn_bench.protocol.report import score_report
+
+    from offdyn_bench.protocol import CORE_SUITE
+
+    matl = _records("matl", name="evaluation.json")
+    tasks = {record["task"] for record in matl}
+    assert tasks == set(CORE_SUITE) and len(matl) == 5 * len(CORE_SUITE)
+    source = [record for record in _records("sac-source", name="evaluation.json") if record["task"] in tasks]
+    report = score_report(matl + source)
+    by_method = {scores.method: scores for scores in report.methods}
+    ant = report.tasks.index("ant-friction-5.0")
+    assert by_method["matl"].raw[:, ant].mean() == pytest.approx(727.1, abs=0.05)
+    assert by_method["matl"].normalized[:, ant].mean() == pytest.approx(394.2, abs=0.05)
+    assert report.aggregates["matl"]["iqm"].point == pytest.approx(16.0, abs=0.05)
+    assert report.aggregates["sac-source"]["iqm"].point == pytest.approx(53.9, abs=0.05)
+    assert report.improvement["matl>sac-source"].point == pytest.approx(0.22, abs=0.005)
+    assert by_method["matl"].normalized.mean() == pytest.approx(52.5, abs=0.05)
