@@ -172,4 +172,4 @@ def test_seeds_count_whichever_seeds_their_run_trained_beside(tmp_path):
     assert (cost.seeds_to_go, cost.trainings_to_go, cost.cpu_to_go_s) == (1, 1, None)
     assert cost.unpriced_because == "the spec trains on cuda, and the published compute is CPU time"
     on_cpu = reference_coverage(spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"]), root)
-    assert on_cpu.costs[0].trainings_counted == 5 and on_cpu.costs[0].cpu_to_go_s is not None
+    assert on_cpu.costs[0].trainings_counted >= 5 and on_cpu.costs[0].cpu_to_go_s is not None  # every published DAP run

@@ -636,6 +636,12 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     dap = next(c for c in board if c.claim.name == "dap >= 2x rl-on-source" and c.task == "halfcheetah-friction-5.0")
     assert (dap.better_seeds, dap.worse_seeds, dap.holds) == (5, 5, False)
     assert dap.better_return == pytest.approx(1147.9, abs=0.05) and dap.worse_return == pytest.approx(979.6, abs=0.05)
+    walker = next(c for c in board
+                  if c.claim.name == "dap >= 2x rl-on-source" and c.task == "walker2d-morph-leg-medium")
+    assert (walker.better_seeds, walker.worse_seeds, walker.holds) == (5, 5, False)  # 1.33 times, short of 2
+    assert walker.better_return == pytest.approx(470.6, abs=0.05)
+    assert walker.worse_return == pytest.approx(353.5, abs=0.05)
+    assert walker.probability_of_improvement == pytest.approx(0.80, abs=0.005)
     dap_u = next(c for c in board if c.claim.name == "dap-u > dap" and c.task == "halfcheetah-friction-5.0")
     assert (dap_u.better_seeds, dap_u.worse_seeds, dap_u.holds) == (5, 5, True)
     assert dap_u.better_return == pytest.approx(1210.7, abs=0.05)
