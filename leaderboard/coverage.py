@@ -101,10 +101,13 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     published: dict[tuple[str, str, str | None], list[int]] = {}
     others: dict[Path, str] = {}
     missing: list[Run] = []
+    read: dict[tuple[str, str, str | None], dict[tuple[int, str], tuple[Path, dict[str, Any]]]] = {}
     for run in runs:
         key = (run.method, run.task, run.dataset_tag)
         wanted.setdefault(key, []).extend(run.seeds)
-        records = _published_records(budget_dir, run)
+        if key not in read:  # each published folder is read once, not once per seed group
+            read[key] = _published_records(budget_dir, run)
+        records = read[key]
         complete = True
         for seed in run.seeds:
             found = [records[seed, side] for side in _sides(run) if (seed, side) in records]
@@ -122,9 +125,11 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
         lacking = [run for run in missing if run.method == method]
         trainings = {run.training_folder for run in lacking}
         times = counted.get(method, [])
-        why = ("" if times else f"the spec trains on {spec.device}, and the published compute is CPU time"
-               if spec.device != "cpu" else f"no published training of it ({spec.seeds_per_run} seed(s) per run) "
-               "counted its compute")
+        why = ""
+        if spec.device != "cpu":
+            why = f"the spec trains on {spec.device}, and the published compute is CPU time"
+        elif not times:
+            why = f"no published training of it ({spec.seeds_per_run} seed(s) per run) counted its compute"
         seeds_to_go = sum(len(seeds) - len(published.get(key, ())) for key, seeds in wanted.items() if key[0] == method)
         costs.append(MethodCost(method, seeds_to_go, len(trainings),
                                 statistics.median(times) if times else None, len(times), why))
