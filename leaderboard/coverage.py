@@ -24,9 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from baselines.run_folder import TrainingCompute
-from leaderboard.assemble import read_evaluation_strict
-from leaderboard.reference_runs import (REFERENCE_RUNS_DIR, RECORD_FILES, check_reference_record,
-                                       read_published_compute)
+from leaderboard.reference_runs import (REFERENCE_RUNS_DIR, RECORD_FILES, read_published_compute,
+                                       read_published_record, require_published_root)
 from leaderboard.submission import SubmissionError
 from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
 from offdyn_bench.sweep.driver import format_duration
@@ -67,7 +66,6 @@ class Coverage:
     budget: str
     published_dir: Path
     methods: tuple[str, ...]
-    rows: tuple[Row, ...]
     wanted: Mapping[tuple[str, str, str | None], tuple[int, ...]]
     """(method, task, dataset tag) -> the spec's seeds there."""
     published: Mapping[tuple[str, str, str | None], tuple[int, ...]]
@@ -75,6 +73,11 @@ class Coverage:
     others: tuple[tuple[Path, str], ...]
     """Published records at a spec run's place that are another run, with what differs."""
     costs: tuple[MethodCost, ...]
+
+    @property
+    def rows(self) -> tuple[Row, ...]:
+        """The table's rows, in the spec's task (and dataset) order."""
+        return tuple(dict.fromkeys((task, tag) for _, task, tag in self.wanted))
 
     @property
     def seeds_wanted(self) -> int:
@@ -92,9 +95,7 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     if spec.budget is None:
         raise SubmissionError(f"{spec.source}: sets steps, not a protocol budget; reference runs are published "
                               "per budget (lite, full): give the spec a budget")
-    if not root.is_dir():
-        raise SubmissionError(f"{root}: not a folder; expected published reference runs "
-                              "(<budget>/<method>/<task>/<seeds>/evaluation.json, as publish-runs writes them)")
+    require_published_root(root)
     budget_dir = root / spec.budget
     runs = expand(spec)
     wanted: dict[tuple[str, str, str | None], list[int]] = {}
@@ -133,8 +134,7 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
         seeds_to_go = sum(len(seeds) - len(published.get(key, ())) for key, seeds in wanted.items() if key[0] == method)
         costs.append(MethodCost(method, seeds_to_go, len(trainings),
                                 statistics.median(times) if times else None, len(times), why))
-    rows = tuple(dict.fromkeys((task, tag) for _, task, tag in wanted))
-    return Coverage(spec.source, spec.budget, budget_dir, tuple(spec.methods), rows,
+    return Coverage(spec.source, spec.budget, budget_dir, tuple(spec.methods),
                     {key: tuple(sorted(seeds)) for key, seeds in wanted.items()},
                     {key: tuple(sorted(published.get(key, ()))) for key in wanted},
                     tuple(sorted(others.items())), tuple(costs))
@@ -160,9 +160,8 @@ def _published_records(budget_dir: Path, run: Run) -> dict[tuple[int, str], tupl
             side = RECORD_FILES.get(path.name)
             if side is None:
                 continue
-            record = read_evaluation_strict(path)
             # A hand edit (a record in another method's folder, a damaged one) is refused outright.
-            check_reference_record(path, record, run.method, run.task, folder.name, side)
+            record = read_published_record(budget_dir, path)
             for entry in record["seeds"]:
                 found[(entry["seed"], side)] = (path, record)
     return found

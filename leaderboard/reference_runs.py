@@ -345,15 +345,20 @@ class ReferenceProgress:
         return admit(self.rl_on_source) if self.rl_on_source is not None else None
 
 
-def _published_budgets(root: Path) -> list[Path]:
-    """The budget folders of published reference runs under ``root``, which must be a folder."""
+def require_published_root(root: Path) -> None:
+    """Refuse a ``root`` of published reference runs that is not a folder."""
     if not root.is_dir():
         raise SubmissionError(f"{root}: not a folder; expected published reference runs "
                               "(<budget>/<method>/<task>/<seeds>/evaluation.json, as publish-runs writes them)")
+
+
+def _published_budgets(root: Path) -> list[Path]:
+    """The budget folders of published reference runs under ``root``, which must be a folder."""
+    require_published_root(root)
     return sorted(path for path in root.glob("*") if path.is_dir())
 
 
-def _read_published(budget_dir: Path, path: Path) -> dict[str, Any]:
+def read_published_record(budget_dir: Path, path: Path) -> dict[str, Any]:
     """A published record, checked again where it is read: a hand edit is refused, not rendered."""
     method, task, label, name = path.relative_to(budget_dir).parts
     record = read_evaluation_strict(path)
@@ -372,9 +377,9 @@ def reference_progress(root: Path = REFERENCE_RUNS_DIR, *, references: Path | No
 
     progress = {}
     for budget_dir in _published_budgets(root):
-        source_records = [_read_published(budget_dir, path) for path in sorted(budget_dir.glob("sac-source/*/*/evaluation*.json"))
+        source_records = [read_published_record(budget_dir, path) for path in sorted(budget_dir.glob("sac-source/*/*/evaluation*.json"))
                           if path.name in RECORD_FILES]
-        oracle_records = [_read_published(budget_dir, path)
+        oracle_records = [read_published_record(budget_dir, path)
                           for path in sorted(budget_dir.glob(f"sac-target/*/*/{EVALUATION_FILE}"))]
         # The oracle runs are a candidate's oracle where the reference file records none, as in
         # `protocol admission`: the board's test is the command's, on the same records.
@@ -399,7 +404,7 @@ def reference_claims(root: Path = REFERENCE_RUNS_DIR) -> dict[str, list[ClaimChe
 
     claims = {}
     for budget_dir in _published_budgets(root):
-        records = [_read_published(budget_dir, path) for path in sorted(budget_dir.glob(f"*/*/*/{EVALUATION_FILE}"))]
+        records = [read_published_record(budget_dir, path) for path in sorted(budget_dir.glob(f"*/*/*/{EVALUATION_FILE}"))]
         checks = check_claims(records) if records else []
         if checks:
             claims[budget_dir.name] = checks
