@@ -624,7 +624,8 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     """The board checks the papers' claims on every published target record, as `protocol claims`
     does: DAP on halfcheetah-friction-5.0 returns 1147.9 against RL on source's 979.6 over 5 seeds
     each, 1.17x, so "DAP at least doubles RL on source" does not hold there at lite; DAP+U's 1210.7
-    is above DAP's, with P 0.68."""
+    is above DAP's, with P 0.68, and on walker2d-morph-leg-medium DAP+U's 421.2 is below DAP's
+    470.6 (P 0.32), so "DAP+U improves on DAP" holds on one passing pair and not the other."""
     from leaderboard.reference_runs import reference_claims
     from leaderboard.render import build_site
     from offdyn_bench.protocol.claims import check_claims
@@ -646,6 +647,11 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     assert (dap_u.better_seeds, dap_u.worse_seeds, dap_u.holds) == (5, 5, True)
     assert dap_u.better_return == pytest.approx(1210.7, abs=0.05)
     assert dap_u.probability_of_improvement == pytest.approx(0.68, abs=0.005)
+    walker_u = next(c for c in board if c.claim.name == "dap-u > dap" and c.task == "walker2d-morph-leg-medium")
+    assert (walker_u.better_seeds, walker_u.worse_seeds, walker_u.holds) == (5, 5, False)  # below DAP there
+    assert walker_u.better_return == pytest.approx(421.2, abs=0.05)
+    assert walker_u.worse_return == pytest.approx(470.6, abs=0.05)
+    assert walker_u.probability_of_improvement == pytest.approx(0.32, abs=0.005)
     # H2O's Table 1 setting, per dataset: the runs' folders name it (medium-v0.seed-N).
     h2o = next(c for c in board if c.claim.name == "h2o > darc" and c.task == "halfcheetah-h2o-gravity-2.0")
     assert h2o.dataset == "offdyn/halfcheetah-h2o-gravity-2p0/medium-v0"
