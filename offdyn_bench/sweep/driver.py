@@ -215,6 +215,8 @@ def parse_duration(text: str, option: str = "--start-before") -> float:
 def format_duration(seconds: float | None) -> str:
     if seconds is None or not math.isfinite(seconds):
         return "?"
+    if 0 < seconds < 0.5:
+        return "<1s"  # some time was spent: "0s" would read as none
     seconds = round(seconds)
     hours, rest = divmod(seconds, 3600)
     minutes, secs = divmod(rest, 60)

@@ -373,3 +373,14 @@ def test_the_eta_is_when_the_last_run_ends_on_the_sweeps_slots(run_record):
     progress.start("c")
     now[0] = 600.0  # b is about done, c has 9 of its 10 minutes left
     assert progress.line(records, capacity=2).endswith("ETA 9m00s")
+
+
+@pytest.mark.parametrize(("seconds", "shown"), [
+    (None, "?"), (float("nan"), "?"), (float("inf"), "?"),
+    (0.0, "0s"), (0.3, "<1s"), (0.6, "1s"), (59.4, "59s"), (59.6, "1m00s"),
+    (3599.6, "1h00m"), (7260.0, "2h01m"),
+])
+def test_durations_read_in_the_largest_units_and_time_spent_never_reads_as_none(seconds, shown):
+    from offdyn_bench.sweep.driver import format_duration
+
+    assert format_duration(seconds) == shown
