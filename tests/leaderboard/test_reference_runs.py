@@ -632,6 +632,7 @@ _PUBLISHED_CLAIMS = {
     ("dap >= 2x rl-on-source", "walker2d-morph-leg-medium"): ((5, 5), False, 470.6, 353.5, 0.80),  # 1.33 times
     ("dap >= 2x rl-on-source", "hopper-gravity-0.5"): ((5, 5), False, 310.0, 477.8, 0.32),  # below it
     ("dap >= 2x rl-on-source", "hopper-friction-0.5"): ((5, 5), False, 724.0, 523.9, 0.64),  # 1.38 times
+    ("dap >= 2x rl-on-source", "hopper-kinematic-foot-medium"): ((4, 5), False, 553.6, 468.4, 0.55),
     ("dap-u > dap", "halfcheetah-friction-5.0"): ((5, 5), True, 1210.7, 1147.9, 0.68),
     ("dap-u > dap", "walker2d-morph-leg-medium"): ((5, 5), False, 421.2, 470.6, 0.32),  # below DAP there
     ("h2o > darc", "halfcheetah-h2o-gravity-2.0"): ((5, 5), True, 2785.2, 2215.1, 0.60),
