@@ -120,13 +120,24 @@ class SACAgent:
                                           device=self.device, requires_grad=True)
         self.target_entropy = (config.target_entropy_per_action_dim * float(action_dim)
                                if config.target_entropy is None else config.target_entropy)
-        self.actor_optimizer = torch.optim.Adam(self.actor, lr=config.actor_lr, foreach=True)
-        self.critic_optimizer = torch.optim.Adam(self.critic, lr=config.critic_lr, foreach=True)
+        # On CUDA the optimizers keep their step counters on the device (capturable), so an eager
+        # update and one replayed from a CUDA graph (cuda_graph=true) compute the same numbers.
+        capturable = self.device.type == "cuda"
+        self.actor_optimizer = torch.optim.Adam(self.actor, lr=config.actor_lr, foreach=True, capturable=capturable)
+        self.critic_optimizer = torch.optim.Adam(self.critic, lr=config.critic_lr, foreach=True,
+                                                 capturable=capturable)
         self.temperature_optimizer = torch.optim.Adam([self.log_temperature], lr=config.temperature_lr,
-                                                      foreach=True)
+                                                      foreach=True, capturable=capturable)
         # Policy noise; other components (buffers, classifiers) own their streams, so adding a
         # component never shifts this one.
         self.generator = seed_generator(seeds[0] * 7919 + 1, self.device)
+
+    def update_state(self, *generators: torch.Generator) -> UpdateState:
+        """What :func:`sac_update` writes: every parameter, the target critics, the three optimizers
+        and the policy noise, plus a method's own ``generators`` drawn inside its update."""
+        return UpdateState([*self.actor, *self.critic, *self.critic_target, self.log_temperature],
+                           [self.actor_optimizer, self.critic_optimizer, self.temperature_optimizer],
+                           [self.generator, *generators])
 
     @property
     def temperature(self) -> torch.Tensor:
@@ -303,6 +314,52 @@ def sac_update(agent: SACAgent, batch: Batch, *, reward_correction: torch.Tensor
     return metrics
 
 
+@dataclasses.dataclass(frozen=True)
+class UpdateState:
+    """Everything an update writes besides its outputs: the tensors it changes in place
+    (parameters, target networks), the optimizers it steps (Adam, ``capturable``) and the random
+    streams it draws from. :class:`GraphedUpdate` rewinds these after its warm-up."""
+
+    tensors: Sequence[torch.Tensor]
+    optimizers: Sequence[torch.optim.Optimizer]
+    generators: Sequence[torch.Generator]
+
+
+class _Rewind:
+    """A copy of an :class:`UpdateState` taken now, put back in place later (same storage, so a
+    CUDA graph captured in between still points at the live tensors)."""
+
+    def __init__(self, state: UpdateState) -> None:
+        self.state = state
+        self.tensors = [t.detach().clone() for t in state.tensors]
+        self.optimizers = []
+        for optimizer in state.optimizers:
+            if not isinstance(optimizer, torch.optim.Adam):
+                raise TypeError(f"GraphedUpdate rewinds Adam only, not {type(optimizer).__name__}: Adam's "
+                                "state starts at zero, which is what rewinding an unstarted optimizer restores")
+            saved = {}
+            for group in optimizer.param_groups:
+                for p in group["params"]:
+                    state_of_p = optimizer.state.get(p)
+                    saved[p] = {k: v.clone() for k, v in state_of_p.items()} if state_of_p else None
+            self.optimizers.append((optimizer, saved))
+        self.generators = [g.get_state() for g in state.generators]
+
+    def restore(self) -> None:
+        with torch.no_grad():
+            for live, saved in zip(self.state.tensors, self.tensors, strict=True):
+                live.copy_(saved)
+            for optimizer, saved in self.optimizers:
+                for p, before in saved.items():
+                    for key, value in optimizer.state[p].items():
+                        if before is None:
+                            value.zero_()  # Adam's fresh state: step 0, both moments 0
+                        else:
+                            value.copy_(before[key])
+        for generator, saved_state in zip(self.state.generators, self.generators, strict=True):
+            generator.set_state(saved_state)
+
+
 class GraphedUpdate:
     """``update(batch)`` captured once in a CUDA graph and replayed: one launch per update instead
     of a few hundred small kernels, which is what a seed-batched update on a GPU is bound by.
@@ -312,22 +369,33 @@ class GraphedUpdate:
     read without a host sync until the caller needs them. Random streams used inside the update
     (the agent's policy noise, a method's own generators) are passed as ``generators`` and
     registered with the graph, so every replay draws fresh numbers. The optimizers must be
-    ``capturable`` (see :func:`make_capturable`). The warm-up updates the graph needs are real
-    updates: a graphed run is deterministic, but not equal to an eager one.
+    ``capturable`` (see :func:`make_capturable`).
+
+    Capture needs warm-up updates, which are real ones. Given ``rewind`` (an :class:`UpdateState`
+    holding ``generators``), the warm-up leaves no trace: tensors, optimizer states and random
+    streams are put back in place after the capture, so the replays continue exactly where the
+    eager update would have (measured bit for bit on an H200, ``benchmarks/graph_soak.py``).
+    Without it, a graphed run is deterministic but not equal to an eager one.
 
     Only the newest GraphedUpdate of a process may replay (an older one raises): on an H200, an
-    older graph replayed after a newer one was built computed NaN losses, then faulted. Even a lone
-    graph built after other CUDA work went non-finite where the eager update did not, so training
-    runs refuse ``cuda_graph`` (:mod:`baselines.online_sac`); this class stays for finding the cause.
+    older graph replayed after a newer one was built computed NaN losses, then faulted.
     """
 
     _built: ClassVar[int] = 0
     """How many GraphedUpdates this process has built: only the newest may replay."""
 
     def __init__(self, update: Callable[[Batch], Metrics], example: Batch,
-                 generators: Sequence[torch.Generator], warmup_updates: int = 3) -> None:
+                 generators: Sequence[torch.Generator], warmup_updates: int = 3,
+                 rewind: UpdateState | None = None) -> None:
         if example.observations.device.type != "cuda":
             raise ValueError("GraphedUpdate needs CUDA tensors (a CUDA graph captures GPU work)")
+        if rewind is not None and {id(g) for g in generators} != {id(g) for g in rewind.generators}:
+            raise ValueError("rewind must hold exactly the generators the graph registers")
+        if rewind is not None and not all(group.get("capturable") for optimizer in rewind.optimizers
+                                          for group in optimizer.param_groups):
+            raise ValueError("the optimizers of a graphed update must be capturable (SACAgent on CUDA, or "
+                             "make_capturable)")
+        snapshot = _Rewind(rewind) if rewind is not None else None
         GraphedUpdate._built += 1
         self.number = GraphedUpdate._built
         self.static_batch = Batch(*(x.clone() for x in example))
@@ -346,12 +414,13 @@ class GraphedUpdate:
             register(generator)
         with torch.cuda.graph(self.graph):
             self.metrics = update(self.static_batch)
+        if snapshot is not None:
+            snapshot.restore()
 
     def __call__(self, batch: Batch) -> Metrics:
         if self.number != GraphedUpdate._built:
             # Seen on an H200 (torch 2.11): once a second GraphedUpdate was built in the process,
-            # the first one's replays gave NaN losses, then illegal memory accesses. Cause not
-            # established, and a lone graph was seen to fail too: training refuses cuda_graph.
+            # the first one's replays gave NaN losses, then illegal memory accesses.
             raise RuntimeError(f"this GraphedUpdate is number {self.number} of {GraphedUpdate._built} built in "
                                "this process, and only the newest may replay: replaying an older one after "
                                "another was built corrupts its updates. Build one GraphedUpdate per process "

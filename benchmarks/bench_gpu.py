@@ -254,11 +254,11 @@ def main() -> None:
         try:
             measure({f"graph-{n}": graph})
         except NonFiniteLoss as error:
-            # Seen on an H200 (torch 2.11): why training runs refuse cuda_graph=true. Reported, so a
-            # fix shows here as finite rows.
+            # Seen once on an H200 (torch 2.11), not reproduced since (README, Devices). Reported,
+            # not hidden, should it come back.
             report["rows"].append({"variant": f"graph-{n}", "seeds": n, "non_finite": str(error)})
-            print(f"   graph-{n}: {error}: the CUDA-graph update is withdrawn from training (see "
-                  "baselines/online_sac.py)", flush=True)
+            print(f"   graph-{n}: {error}: do not train with cuda_graph=true on this machine "
+                  "(benchmarks/graph_soak.py checks a graph against its eager twin)", flush=True)
     if args.train_seeds:
         t = bench_train("sac-target", args.train_task, args.train_steps, args.train_random_steps, args.train_seeds,
                         args.train_cpu_seeds)

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU checks of one lent device call, in one script (the lease is short; a second start costs
-# minutes): the CUDA tests, then bench_gpu.py's update and whole-train benchmarks, then the reference
-# methods side by side (seed-batched on CUDA against one seed per CPU core, all at once).
+# minutes): the CUDA tests, then bench_gpu.py's update and whole-train benchmarks, the CUDA-graph
+# update against its eager twin and as whole runs, then the reference methods side by side
+# (seed-batched on CUDA against one seed per CPU core, all at once).
 #
 #   bash benchmarks/gpu_check.sh --prepare    # here: fills .whl/ and .device-data/ (both git-ignored)
 #   bash benchmarks/gpu_check.sh              # there, carrying .whl and .device-data; logs and JSON in $OUT
@@ -62,10 +63,11 @@ echo "== updates (ours eager/graphed vs SB3) and a whole train run on CUDA vs on
 timeout 150 python3 benchmarks/bench_gpu.py --rounds 3 --updates-per-round 300 --train-seeds 5 --train-cpu-seeds 1 \
   --train-steps 2500 --json "$out/bench-updates.json" 2>&1 | tee "$out/bench-updates.log" | grep -v Warning
 
-echo "== the graph update again with cuBLAS workspaces off: the suspected cause of its corruption is a"
-echo "   per-stream cuBLAS workspace that a captured graph keeps using after torch frees it (pytorch#193402)"
-CUBLAS_WORKSPACE_CONFIG=:0:0 timeout 90 python3 benchmarks/bench_gpu.py --rounds 2 --updates-per-round 300 \
-  --skip-sb3 --train-seeds 0 --json "$out/bench-graph-no-cublas-workspace.json" 2>&1 | grep -v Warning
+echo "== the graph update against its eager twin (must stay bit-identical and finite), then whole runs"
+timeout 120 python3 benchmarks/graph_soak.py --seeds 1 20 --twin-updates 3000 --soak 30000 \
+  --json "$out/graph-soak.json" 2>&1 | grep -v Warning | tail -6
+timeout 150 python3 benchmarks/bench_cuda_graph.py --methods cql sac-target --task "$methods_task" --steps 2000 \
+  --seeds 5 --rounds 2 --json "$out/bench-cuda-graph.json" 2>&1 | grep -v -e Warning -e "official offline" -e installed
 
 echo "== reference methods, 5 seeds on CUDA vs one seed per CPU core, all at once"
 timeout "${METHODS_TIMEOUT:-210}" python3 benchmarks/bench_gpu.py --seeds --skip-sb3 --train-seeds 0 \

@@ -1,5 +1,6 @@
 """Training on a device: ``--device cpu|cuda|auto``, errors before anything is written, one device
-per run folder, (where there is CUDA) determinism per device, and the withdrawn CUDA-graph update."""
+per run folder, (where there is CUDA) determinism per device, and the CUDA-graph update, which must
+compute exactly what the eager update computes."""
 
 from __future__ import annotations
 
@@ -59,14 +60,82 @@ def test_the_device_is_recorded_and_a_run_resumes_only_on_its_own(tmp_path):
     assert sorted(p.name for p in out.rglob("*")) == before
 
 
-def test_the_cuda_graph_training_path_is_withdrawn_before_anything_is_written(tmp_path):
+@pytest.mark.parametrize("algo", ["sac-target", "cql"])
+def test_cuda_graph_on_a_cpu_is_refused_before_anything_is_written(algo, tmp_path, pendulum_dataset):
     context = MethodContext(observation_dim=4, action_dim=1, seeds=(0,))
-    with pytest.raises(OffdynError, match=r"cuda_graph=true is withdrawn: .*NaN losses.*Leave cuda_graph unset"):
-        build_source(OnlineConfig(sac=SACConfig(hidden_sizes=(8,)), cuda_graph=True), context)
-    result = CliRunner().invoke(app, ["train", "sac-target", "--task", PENDULUM, "--steps", "40", "--out",
-                                      str(tmp_path / "run"), "--set", "cuda_graph=true", "--no-progress"])
-    assert result.exit_code != 0 and "cuda_graph=true is withdrawn" in result.output
+    if algo == "sac-target":
+        with pytest.raises(OffdynError, match=r"cuda_graph=true needs --device cuda .* this run is on cpu"):
+            build_source(OnlineConfig(sac=SACConfig(hidden_sizes=(8,)), cuda_graph=True), context)
+    dataset = ["--dataset", str(pendulum_dataset)] if algo == "cql" else []
+    result = CliRunner().invoke(app, ["train", algo, "--task", PENDULUM, "--steps", "40", "--out", str(tmp_path / "run"),
+                                      "--set", "cuda_graph=true", "--device", "cpu", "--no-progress", *dataset])
+    assert result.exit_code != 0 and "cuda_graph=true needs --device cuda" in result.output
     assert not (tmp_path / "run").exists()
+
+
+def _batch(n_seeds: int, size: int, seed: int):
+    from baselines.sac import Batch
+
+    g = torch.Generator().manual_seed(seed)
+    return Batch(torch.randn(n_seeds, size, 5, generator=g), torch.rand(n_seeds, size, 2, generator=g) * 2 - 1,
+                 torch.randn(n_seeds, size, generator=g), torch.randn(n_seeds, size, 5, generator=g),
+                 torch.zeros(n_seeds, size))
+
+
+@pytest.mark.parametrize("started", [False, True], ids=["fresh-optimizers", "started-optimizers"])
+def test_a_rewind_undoes_updates_in_place_so_the_next_update_is_the_eager_one(started):
+    """What a graph's warm-up relies on (here on the CPU): after real updates, rewinding puts
+    parameters, targets, optimizer states and random streams back into the same storage, so the
+    next update equals a twin's that never made them, fresh optimizers or a resumed run's alike."""
+    from baselines.sac import SACAgent, _Rewind, sac_update
+
+    config = SACConfig(hidden_sizes=(16, 16), batch_size=8)
+    agent, twin = (SACAgent(5, 2, seeds=[0, 1], config=config) for _ in range(2))
+    if started:
+        for i in range(2):
+            sac_update(agent, _batch(2, 8, i)), sac_update(twin, _batch(2, 8, i))
+    state = agent.update_state()
+    storage = [t.data_ptr() for t in state.tensors]
+    rewind = _Rewind(state)
+    for i in range(3):
+        sac_update(agent, _batch(2, 8, 10 + i))
+    assert not torch.equal(agent.actor[0], twin.actor[0])  # the updates did change it
+    rewind.restore()
+    assert [t.data_ptr() for t in state.tensors] == storage
+    for _ in range(2):
+        batch = _batch(2, 8, 99)
+        mine, theirs = sac_update(agent, batch), sac_update(twin, batch)
+        assert all(torch.equal(mine[k], theirs[k]) for k in theirs)
+    for name, value in twin.state_dict().items():
+        assert torch.equal(agent.state_dict()[name], value), name
+
+
+@needs_cuda
+@pytest.mark.parametrize("algo", ["sac-target", "cql"])
+def test_a_graphed_run_computes_exactly_the_eager_run(algo, tmp_path, pendulum_dataset):
+    overrides = TINY if algo == "sac-target" else {k: v for k, v in TINY.items() if k.startswith("sac.")}
+    dataset = str(pendulum_dataset) if algo == "cql" else None
+    common = {"steps": 80, "n_seeds": 2, "dataset": dataset, "eval_episodes": 2, "eval_every": 40,
+              "progress": False, "device": "cuda"}
+    eager = train(algo, PENDULUM, out=tmp_path / "eager", overrides=overrides, **common)
+    graphed = train(algo, PENDULUM, out=tmp_path / "graphed", overrides=overrides | {"cuda_graph": "true"}, **common)
+    assert graphed["returns"] == eager["returns"]
+
+    def curve(run: str) -> list[dict]:
+        return [{k: v for k, v in json.loads(line).items() if not k.endswith("time_s")}
+                for line in (tmp_path / run / "metrics.jsonl").read_text().splitlines()]
+
+    assert curve("graphed") == curve("eager")  # the losses too, at every evaluation
+
+
+@needs_cuda
+def test_a_resumed_graphed_run_captures_again_and_equals_an_uninterrupted_one(tmp_path, pendulum_dataset):
+    overrides = {k: v for k, v in TINY.items() if k.startswith("sac.")} | {"cuda_graph": "true"}
+    common = {"steps": 80, "overrides": overrides, "dataset": str(pendulum_dataset), "eval_episodes": 2,
+              "progress": False, "device": "cuda", "checkpoint_every": 40}
+    whole = train("cql", PENDULUM, out=tmp_path / "whole", **common)
+    assert train("cql", PENDULUM, out=tmp_path / "cut", stop_after=40, **common) is None
+    assert train("cql", PENDULUM, out=tmp_path / "cut", **common)["returns"] == whole["returns"]
 
 
 @needs_cuda
