@@ -1,0 +1,140 @@
+#!/usr/bin/env bash
+# Reference runs on a lent GPU machine, inside the few minutes a lease gives (README, "Devices").
+#
+#   bash scripts/gpu_reference_sweep.sh --prepare METHOD lite|STEPS TASK...   # here: fills .device-sweep/
+#   bash scripts/gpu_reference_sweep.sh [WAIT_S]                              # there, carrying .device-sweep
+#
+# --prepare writes a sweep spec (METHOD on each TASK, seeds 0-4 trained together in one CUDA run per
+# task, the offline-target track, the lite budget or STEPS steps for a smoke test; SAC and CQL replay
+# their update from a CUDA graph, which computes what the eager update does), the Python 3.12 wheels
+# the device lacks, and each task's installed target dataset (the device's h5py is not the pinned
+# one, so a rebuild there would not match the manifest's sha256). What travels must stay under
+# 64 MiB: the wheels take about 26 MB, a task's dataset about 3 MB packed.
+#
+# There, the sweep (local backend, one worker per task) starts in its own process session, so it
+# outlives the call; a second call made at once (before the machine's idle release) finds it and
+# only waits. Each call returns when the sweep ends or after WAIT_S seconds (default 540), with
+# the finished runs, checkpoints left out, in $OUT/sweep.tar.xz and the sweep's log. Then here:
+#
+#   mkdir -p runs && tar -xJf <files_at>/sweep.tar.xz -C runs
+#   offdyn-bench leaderboard publish-runs runs/gpu-reference
+set -u
+# DEVICE_SWEEP_DIR and SWEEP_ROOT move the two folders (tests/test_gpu_reference_sweep.py does).
+dir=${DEVICE_SWEEP_DIR:-.device-sweep}
+sweep_root=${SWEEP_ROOT:-/tmp/offdyn-gpu-reference}
+if [ "${1:-}" = "--prepare" ]; then
+  set -e
+  if [ $# -lt 4 ]; then
+    echo "usage: $0 --prepare METHOD lite|STEPS TASK... (e.g. --prepare cql lite hopper-gravity-0.5)" >&2
+    exit 2
+  fi
+  method=$2 budget=$3
+  shift 3
+  case $budget in
+    lite) budget_line="budget: lite" ;;
+    *[!0-9]*|"") echo "error: budget $budget: expected lite or a number of steps" >&2; exit 2 ;;
+    *) budget_line="steps: $budget" ;;
+  esac
+  if [ "$dir" = .device-sweep ]; then  # kept out of git (and so out of what travels unless carried)
+    grep -qxF '/.device-sweep*/' .git/info/exclude 2>/dev/null || echo '/.device-sweep*/' >> .git/info/exclude
+  fi
+  # Built beside the folder and moved into place at the end: a failed prepare leaves the last
+  # good one as it was.
+  final=$dir dir=$dir.partial
+  trap 'rm -rf "$dir"' EXIT
+  rm -rf "$dir" && mkdir -p "$dir/wheels" "$dir/datasets"
+  # SKIP_WHEELS=1: no wheels (a check of this script where the packages are installed).
+  [ "${SKIP_WHEELS:-0}" = 1 ] || for pkg in mujoco==3.17.0 gymnasium==1.4.0 minari==0.5.4 glfw==2.11.0 farama-notifications==0.0.6; do
+    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+      --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+      --platform manylinux2014_x86_64 -d "$dir/wheels" "$pkg"
+  done
+  tasks=""
+  for task in "$@"; do
+    # Installs (or verifies) the dataset, its messages on stderr, and prints its id; a wrong task
+    # name fails here, before anything travels.
+    dataset=$(.venv/bin/python -c "
+import sys
+from offdyn_bench.datasets.ensure import ensure_dataset
+from offdyn_bench.errors import OffdynError
+from offdyn_bench.protocol import official_dataset
+try:
+    dataset = official_dataset(sys.argv[1], 'offline-target')
+    ensure_dataset(dataset, progress=False, echo=lambda line: print(line, file=sys.stderr))
+except (OffdynError, KeyError, ValueError) as error:
+    sys.exit(f'error: task {sys.argv[1]!r}: {error}')
+print(dataset)" "$task")
+    mkdir -p "$dir/datasets/$(dirname "$dataset")"
+    cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" "$dir/datasets/$(dirname "$dataset")/"
+    tasks="$tasks${tasks:+, }$task"
+  done
+  device=${DEVICE:-cuda}  # DEVICE=cpu: the same flow checked on a machine without a GPU
+  overrides=""
+  case $device/$method in cuda/cql|cuda/sac-source|cuda/sac-target) overrides="overrides: {$method: {cuda_graph: \"true\"}}" ;; esac
+  cat > "$dir/spec.yaml" <<EOF
+methods: [$method]
+tasks: [$tasks]
+seeds: [0, 1, 2, 3, 4]
+seeds_per_run: 5
+track: offline-target
+$budget_line
+out: $sweep_root/gpu-reference
+device: $device
+max_retries: 1
+$overrides
+EOF
+  # The device parses the spec with the same code: an unknown method or setting fails here, now.
+  .venv/bin/offdyn-bench sweep "$dir/spec.yaml" --dry-run --out "$dir/dry-run" > /dev/null || exit 2
+  rm -rf "$dir/dry-run"
+  echo "$#" > "$dir/workers"
+  # One xz archive: the datasets shrink about 3x, so more tasks fit in what a call carries.
+  tar -cJf "$dir/payload.tar.xz" -C "$dir" wheels datasets && rm -rf "$dir/wheels" "$dir/datasets"
+  cat "$dir/spec.yaml"
+  tracked=$(git ls-files -z | xargs -0 du -cb 2>/dev/null | tail -1 | cut -f1)
+  carried=$(du -sb "$dir" | cut -f1)
+  echo "travels: $(( (tracked + carried) / 1048576 )) MiB of 64 (tracked $(( tracked / 1048576 )), $dir $(( carried / 1048576 )))"
+  [ $(( tracked + carried )) -lt $(( 64 * 1048576 )) ] || { echo "error: over 64 MiB: prepare fewer tasks" >&2; exit 1; }
+  rm -rf "$final" && mv "$dir" "$final"
+  exit 0
+fi
+
+wait_s=${1:-540}
+out=${OUT:-$sweep_root/out}
+[ -f "$dir/spec.yaml" ] || { echo "error: no $dir/spec.yaml: run --prepare here first and carry $dir" >&2; exit 2; }
+mkdir -p "$out" "$sweep_root"
+unset MUJOCO_GL  # 'egl' fails where the EGL libraries are missing; nothing here renders
+export PYTHONUNBUFFERED=1
+payload=$sweep_root/payload
+if [ ! -f "$payload/.installed" ]; then
+  mkdir -p "$payload" && tar -xJf "$dir/payload.tar.xz" -C "$payload" || exit 1
+  # Where the packages are already installed (a check of this script here), the wheels are not.
+  python3 -c "import mujoco, gymnasium, minari" 2>/dev/null \
+    || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$payload/site" \
+         "$payload"/wheels/*.whl || exit 1
+  touch "$payload/.installed"
+fi
+export PYTHONPATH=$payload/site:$PWD MINARI_DATASETS_PATH=$payload/datasets
+pid_file=$sweep_root/sweep.pid
+if [ -f "$pid_file" ] && kill -0 "$(cat "$pid_file")" 2>/dev/null; then
+  echo "the sweep started by an earlier call is still running (pid $(cat "$pid_file")): waiting for it"
+else
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null
+  python3 -c "import torch, mujoco; print('torch', torch.__version__, 'mujoco', mujoco.__version__)" || exit 1
+  # A sweep resumes its unfinished runs from their checkpoints, so starting again is safe.
+  setsid nohup python3 -m offdyn_bench sweep "$dir/spec.yaml" --workers "$(cat "$dir/workers")" \
+    >> "$sweep_root/sweep.log" 2>&1 < /dev/null &
+  echo $! > "$pid_file"
+fi
+deadline=$(( SECONDS + wait_s ))
+while kill -0 "$(cat "$pid_file")" 2>/dev/null && [ $SECONDS -lt $deadline ]; do
+  sleep 5
+done
+if kill -0 "$(cat "$pid_file")" 2>/dev/null; then
+  echo "still running after ${wait_s} s: call again at once (the machine keeps it for its idle release only)"
+else
+  echo "the sweep has ended"
+fi
+tr '\r' '\n' < "$sweep_root/sweep.log" | grep -v -e Warning -e "^ *logger" | tail -8
+cp "$sweep_root/sweep.log" "$out/sweep.log"
+[ -d "$sweep_root/gpu-reference" ] && tar -cJf "$out/sweep.tar.xz" -C "$sweep_root" --exclude=checkpoints gpu-reference
+ls -la "$out"

@@ -1,0 +1,66 @@
+"""``scripts/gpu_reference_sweep.sh``: prepare a GPU lease's reference sweep here, run it there, and
+bring the finished runs back. Checked on the CPU (``DEVICE=cpu``, no wheels): the same spec, sweep
+and archive as on the device, where it ran on an H200 (README, "Devices")."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "scripts" / "gpu_reference_sweep.sh"
+
+
+def _script(*args: str, tmp_path: Path, **env: str) -> subprocess.CompletedProcess:
+    # No remote: --prepare rebuilds each dataset from its recipe into this test's Minari root.
+    environment = {k: v for k, v in os.environ.items() if k != "OFFDYN_REMOTE"} | {"DEVICE_SWEEP_DIR": str(tmp_path / "device-sweep"),
+                                "SWEEP_ROOT": str(tmp_path / "sweep-root"), "SKIP_WHEELS": "1",
+                                # the checks here run the project's interpreter as python3
+                                "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"} | env
+    return subprocess.run(["bash", str(SCRIPT), *args], cwd=REPO, env=environment, capture_output=True, text=True,
+                          timeout=900)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--prepare", "cql"], "usage: "),
+    (["--prepare", "cql", "ten", "hopper-gravity-0.5"], "error: budget ten: expected lite or a number of steps"),
+    (["--prepare", "cql", "lite", "hopper-gravity-9"], "error: task 'hopper-gravity-9': unknown task"),
+    (["--prepare", "cq1", "lite", "hopper-gravity-0.5"], "methods: unknown algorithm 'cq1'; closest valid names: 'cql'"),
+    (["--prepare", "cql", "0", "hopper-gravity-0.5"], "steps: got 0; expected an integer >= 1"),
+])
+def test_a_bad_prepare_says_what_was_wrong_and_leaves_no_folder(args, message, tmp_path):
+    result = _script(*args, tmp_path=tmp_path)
+    assert result.returncode != 0 and message in result.stderr
+    assert not any(tmp_path.glob("device-sweep*"))
+
+
+def test_running_without_a_prepared_folder_is_refused(tmp_path):
+    result = _script(tmp_path=tmp_path, OUT=str(tmp_path / "out"))
+    assert result.returncode == 2 and "run --prepare here first" in result.stderr
+
+
+@pytest.mark.slow
+def test_a_prepared_sweep_runs_and_comes_back_as_one_archive_without_checkpoints(tmp_path):
+    prepared = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu")
+    assert prepared.returncode == 0, prepared.stderr
+    spec = (tmp_path / "device-sweep" / "spec.yaml").read_text()
+    assert "device: cpu" in spec and "seeds_per_run: 5" in spec and "cuda_graph" not in spec
+
+    ran = _script("600", tmp_path=tmp_path, OUT=str(tmp_path / "out"))
+    assert ran.returncode == 0, ran.stderr
+    assert "the sweep has ended" in ran.stdout and "1/1 runs done, 0 failed" in ran.stdout
+    with tarfile.open(tmp_path / "out" / "sweep.tar.xz") as archive:
+        names = archive.getnames()
+        run = "gpu-reference/runs/cql/hopper-gravity-0.5/seeds-0-4"
+        evaluation = json.load(archive.extractfile(f"{run}/evaluation.json"))
+    assert f"{run}/result.json" in names and f"{run}/metrics.jsonl" in names
+    assert not [name for name in names if "checkpoints" in name]
+    assert [seed["seed"] for seed in evaluation["seeds"]] == [0, 1, 2, 3, 4]
+    assert all(len(seed["returns"]) == 20 for seed in evaluation["seeds"])  # the protocol's 20 episodes
+    assert (tmp_path / "out" / "sweep.log").stat().st_size > 0
