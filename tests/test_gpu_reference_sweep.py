@@ -45,10 +45,19 @@ def test_running_without_a_prepared_folder_is_refused(tmp_path):
     assert result.returncode == 2 and "run --prepare here first" in result.stderr
 
 
+def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_path):
+    tasks = ["hopper-gravity-0.5", "hopper-friction-0.5", "walker2d-gravity-2.0"]
+    prepared = _script("--prepare", "cql", "lite", *tasks, tmp_path=tmp_path, DEVICE="cpu")
+    assert prepared.returncode == 0, prepared.stderr
+    assert "note: 3 lite CQL tasks: a 15-minute lease finishes about two" in prepared.stderr
+    assert f"tasks: [{', '.join(tasks)}]" in (tmp_path / "device-sweep" / "spec.yaml").read_text()
+
+
 @pytest.mark.slow
 def test_a_prepared_sweep_runs_and_comes_back_as_one_archive_without_checkpoints(tmp_path):
     prepared = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu")
     assert prepared.returncode == 0, prepared.stderr
+    assert "note:" not in prepared.stderr  # a smoke test's steps, not lite: nothing to warn about
     spec = (tmp_path / "device-sweep" / "spec.yaml").read_text()
     assert "device: cpu" in spec and "seeds_per_run: 5" in spec and "cuda_graph" not in spec
 
