@@ -32,13 +32,7 @@ if [ "${1:-}" = "--prepare" ]; then
      && rm "$OLDPWD/$wheel" && zip -qr -9 "$OLDPWD/$wheel" .)
   rm -rf "$tmp"
   # Installs (or verifies) the dataset, its messages on stderr, and prints its id.
-  dataset=$(.venv/bin/python -c "
-import sys
-from offdyn_bench.datasets.ensure import ensure_dataset
-from offdyn_bench.protocol import official_dataset
-dataset = official_dataset('$methods_task', 'offline-target')
-ensure_dataset(dataset, progress=False, echo=lambda line: print(line, file=sys.stderr))
-print(dataset)")
+  dataset=$(.venv/bin/offdyn-bench datasets download --task "$methods_task" --print-id)
   mkdir -p ".device-data/$(dirname "$dataset")"
   cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" ".device-data/$(dirname "$dataset")/"
   du -sh .whl .device-data

@@ -27,13 +27,7 @@ if [ "${1:-}" = "--prepare" ]; then
   (cd "$work/site/ray" && rm -rf jars dashboard/client/build rllib serve data train tune llm)
   tar -cJf .device-sweep/site.tar.xz -C "$work/site" .
   rm -rf "$work"
-  dataset=$(.venv/bin/python -c "
-import sys
-from offdyn_bench.datasets.ensure import ensure_dataset
-from offdyn_bench.protocol import official_dataset
-dataset = official_dataset('$task', 'offline-target')
-ensure_dataset(dataset, progress=False, echo=lambda line: print(line, file=sys.stderr))
-print(dataset)")
+  dataset=$(.venv/bin/offdyn-bench datasets download --task "$task" --print-id)
   rm -rf .device-sweep/datasets && mkdir -p ".device-sweep/datasets/$(dirname "$dataset")"
   cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" ".device-sweep/datasets/$(dirname "$dataset")/"
   du -sh .device-sweep

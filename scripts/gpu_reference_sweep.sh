@@ -55,17 +55,7 @@ if [ "${1:-}" = "--prepare" ]; then
   for task in "$@"; do
     # Installs (or verifies) the dataset, its messages on stderr, and prints its id; a wrong task
     # name fails here, before anything travels.
-    dataset=$(.venv/bin/python -c "
-import sys
-from offdyn_bench.datasets.ensure import ensure_dataset
-from offdyn_bench.errors import OffdynError
-from offdyn_bench.protocol import official_dataset
-try:
-    dataset = official_dataset(sys.argv[1], 'offline-target')
-    ensure_dataset(dataset, progress=False, echo=lambda line: print(line, file=sys.stderr))
-except (OffdynError, KeyError, ValueError) as error:
-    sys.exit(f'error: task {sys.argv[1]!r}: {error}')
-print(dataset)" "$task")
+    dataset=$(.venv/bin/offdyn-bench datasets download --task "$task" --print-id)
     mkdir -p "$dir/datasets/$(dirname "$dataset")"
     cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" "$dir/datasets/$(dirname "$dataset")/"
     tasks="$tasks${tasks:+, }$task"

@@ -30,7 +30,7 @@ def _script(*args: str, tmp_path: Path, **env: str) -> subprocess.CompletedProce
 @pytest.mark.parametrize(("args", "message"), [
     (["--prepare", "cql"], "usage: "),
     (["--prepare", "cql", "ten", "hopper-gravity-0.5"], "error: budget ten: expected lite or a number of steps"),
-    (["--prepare", "cql", "lite", "hopper-gravity-9"], "error: task 'hopper-gravity-9': unknown task"),
+    (["--prepare", "cql", "lite", "hopper-gravity-9"], "error: unknown task 'hopper-gravity-9'; closest valid names"),
     (["--prepare", "cq1", "lite", "hopper-gravity-0.5"], "methods: unknown algorithm 'cq1'; closest valid names: 'cql'"),
     (["--prepare", "cql", "0", "hopper-gravity-0.5"], "steps: got 0; expected an integer >= 1"),
 ])

@@ -17,6 +17,7 @@ from offdyn_bench.datasets.transfer import TransferLimits
 from offdyn_bench.datasets.manifest import MANIFEST_PATH, Manifest, read_manifest
 from offdyn_bench.datasets.recipes import POLICY_KINDS, dataset_id, qualities_of
 from offdyn_bench.errors import OffdynError, exit_on_error
+from offdyn_bench.protocol import official_dataset
 from offdyn_bench.tasks import TASKS
 
 datasets_app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -132,7 +133,15 @@ def verify_command(ident: Annotated[str, typer.Argument(metavar="ID")], manifest
 
 @datasets_app.command("download")
 def download_command(
-    ident: Annotated[str, typer.Argument(metavar="ID")],
+    ident: Annotated[Optional[str], typer.Argument(
+        metavar="[ID]", help="Dataset id, e.g. offdyn/hopper-gravity-0p5/source-policy-v0 (or give --task).")] = None,
+    task: Annotated[Optional[str], typer.Option(
+        help="Instead of ID: the official target dataset of this task on --track, the one `train --task "
+             "TASK --track TRACK` trains on.")] = None,
+    track: Annotated[str, typer.Option(help="With --task: the protocol track whose official dataset to install.")]
+        = "offline-target",
+    print_id: Annotated[bool, typer.Option(
+        "--print-id", help="For scripts: print only the dataset id on stdout (the messages go to stderr).")] = False,
     remote: Annotated[Optional[str], typer.Option(
         help="Remote URL (https://, http://, file://); default $OFFDYN_REMOTE. With neither, the dataset is "
              "rebuilt from its recipe.")] = None,
@@ -147,12 +156,31 @@ def download_command(
     """Install a dataset and verify every sha256: from the remote when one is configured,
     otherwise rebuilt from its recipe. Says which it did."""
     with exit_on_error():
+        ident = _dataset_to_download(ident, task, track)
         manifest: Manifest = read_manifest(manifest_path)
         limits = TransferLimits.from_environment()
         overrides = {"deadline_s": deadline, "min_rate_bytes_per_s": min_rate}
         limits = dataclasses.replace(limits, **{k: v for k, v in overrides.items() if v is not None})
         ensure_dataset(ident, remote=remote, manifest=manifest, force=force, limits=limits,
-                       echo=typer.echo, progress=True)
+                       echo=lambda line: typer.echo(line, err=print_id), progress=not print_id)
+        if print_id:
+            typer.echo(ident)
+
+
+def _dataset_to_download(ident: str | None, task: str | None, track: str) -> str:
+    """The dataset id a download names: ``ident``, or ``task``'s official dataset on ``track``."""
+    if (ident is None) == (task is None):
+        raise OffdynError("give a dataset ID or --task TASK, one of the two: e.g. `offdyn-bench datasets download "
+                          "--task hopper-gravity-0.5` installs the dataset `train --task hopper-gravity-0.5 "
+                          "--track offline-target` trains on")
+    if ident is not None:
+        return ident
+    assert task is not None
+    dataset = official_dataset(task, track)
+    if dataset is None:
+        raise OffdynError(f"track {track!r} trains on no target dataset; --task needs a track that does, "
+                          "e.g. offline-target")
+    return dataset
 
 
 def _checkpoint_state_file(path: pathlib.Path) -> tuple[pathlib.Path, pathlib.Path | None]:

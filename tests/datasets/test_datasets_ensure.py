@@ -23,7 +23,7 @@ from offdyn_bench.datasets import (
     verify_installed,
 )
 from offdyn_bench.datasets.archive import tree_sha256
-from offdyn_bench.datasets.manifest import Entry, Manifest, archive_name, entry_name, write_manifest
+from offdyn_bench.datasets.manifest import Entry, Manifest, archive_name, entry_name, read_manifest, write_manifest
 from offdyn_bench.errors import OffdynError
 
 runner = CliRunner()
@@ -211,3 +211,32 @@ def test_a_missing_minari_dataset_names_the_suites_command():
             load()
         assert f"offdyn-bench datasets download {ident}" in str(caught.value)
         assert "download=True" not in str(caught.value)
+
+
+def test_download_by_task_installs_the_dataset_train_uses_and_prints_only_its_id(no_remote, isolated_paths) -> None:
+    from offdyn_bench.protocol import official_dataset
+
+    expected = official_dataset("hopper-gravity-0.5", "offline-target")
+    result = runner.invoke(app, ["datasets", "download", "--task", "hopper-gravity-0.5", "--print-id"])
+    assert result.exit_code == 0, result.output
+    assert result.stdout == f"{expected}\n"  # a script's $(...) gets the id and nothing else
+    assert "rebuilt from its recipe" in result.stderr and "%|" not in result.stderr
+    assert verify_installed(read_manifest().entries[expected]).ok
+    again = runner.invoke(app, ["datasets", "download", "--task", "hopper-gravity-0.5", "--print-id"])
+    assert again.exit_code == 0 and again.stdout == f"{expected}\n"
+    assert f"{expected}: installed at {isolated_paths / expected}; 2 files match" in again.stderr
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    ([], "error: give a dataset ID or --task TASK, one of the two"),
+    (["offdyn/hopper-gravity-0p5/source-policy-v0", "--task", "hopper-gravity-0.5"],
+     "error: give a dataset ID or --task TASK, one of the two"),
+    (["--task", "hopper-gravity-9"], "error: unknown task 'hopper-gravity-9'; closest valid names: "),
+    (["--task", "hopper-gravity-0.5", "--track", "online"], "error: unknown track 'online'"),
+    (["--task", "hopper-gravity-0.5", "--track", "online-target"],
+     "error: track 'online-target' trains on no target dataset; --task needs a track that does"),
+])
+def test_download_by_task_refuses_what_names_no_dataset(args, message, no_remote, isolated_paths) -> None:
+    result = runner.invoke(app, ["datasets", "download", *args, "--print-id"])
+    assert result.exit_code == 2 and result.stdout == "" and result.stderr.startswith(message), result.output
+    assert not isolated_paths.exists()  # nothing installed, no datasets root made
