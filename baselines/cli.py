@@ -49,6 +49,9 @@ def train_command(
                                                              "sets --steps."),
     device: str = typer.Option("cpu", "--device", help="cpu, cuda, cuda:N or auto (CUDA when there is one); "
                                                        "runs are deterministic per device."),
+    eval_on_device: bool = typer.Option(False, "--eval-on-device", help="On an accelerator, run the in-training "
+                                        "evaluations' policy there too (default: a CPU copy of it, which waits on "
+                                        "no device each episode step)."),
 ) -> None:
     """Train a reference baseline and write config.json, metrics.jsonl, result.json and checkpoints."""
     from baselines.train import train
@@ -65,7 +68,7 @@ def train_command(
                        source_dataset=source_dataset,
                        overrides=parsed, eval_every=eval_every, eval_episodes=eval_episodes,
                        checkpoint_every=checkpoint_every, threads=threads, progress=progress, track=track,
-                       budget=budget, device=device)
+                       budget=budget, device=device, eval_on_device=eval_on_device)
     except OffdynError as error:
         typer.echo(f"error: {error}", err=True)
         raise typer.Exit(2) from None

@@ -47,6 +47,7 @@ meaningless); ``u`` is per-sample.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import ClassVar, Literal
 
 import torch
@@ -155,6 +156,10 @@ class DAP:
 
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
         return self.split(self.agent.mean_actions(observations[:, None])[:, 0])[1]
+
+    def host_deploy(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        actor = self.agent.actor_copy("cpu")
+        return lambda observations: self.split(self.agent.mean_actions(observations[:, None], actor)[:, 0])[1]
 
     def record(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
         self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)

@@ -32,6 +32,7 @@ source data and online target data (a test checks this, bit for bit).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import ClassVar
 
 import torch
@@ -43,6 +44,7 @@ from baselines.method import (
     MethodContext,
     deploy_actions,
     explore_actions,
+    host_deploy_actions,
     require_source_data,
 )
 from baselines.sac import Metrics, SACAgent
@@ -86,6 +88,9 @@ class H2OOfflineSource:
 
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
         return deploy_actions(self.agent, observations)
+
+    def host_deploy(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        return host_deploy_actions(self.agent)
 
     def record(self, *transition) -> None:
         raise RuntimeError("h2o-offline-source steps no source simulator: its source data is a fixed dataset")

@@ -7,6 +7,7 @@ its networks and buffers. All tensors are ``[seeds, ...]`` and actions are in [-
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import TYPE_CHECKING, ClassVar, Literal, Protocol
 
 import torch
@@ -58,6 +59,9 @@ class Method(Protocol):
 
     # Optional: ``explore_target(observations, step)``, the target-environment action of a method that
     # acts differently there (MATL's robot agent); without it the loop calls ``explore`` for both.
+    # Optional: ``host_deploy()``, ``deploy`` as it is now, on CPU copies of the deployed policy's
+    # parameters (a callable of CPU observations): a run on an accelerator evaluates with it, so its
+    # evaluation episodes make no device round trip per step.
 
     def record(self, observations: torch.Tensor, stored_actions: torch.Tensor, rewards: torch.Tensor,
                next_observations: torch.Tensor, terminations: torch.Tensor) -> None:
@@ -96,6 +100,12 @@ def deploy_actions(agent: SACAgent, observations: torch.Tensor) -> torch.Tensor:
     return agent.mean_actions(observations[:, None])[:, 0]
 
 
+def host_deploy_actions(agent: SACAgent) -> Callable[[torch.Tensor], torch.Tensor]:
+    """:func:`deploy_actions` of the agent as it is now, on a CPU copy of its actor."""
+    actor = agent.actor_copy("cpu")
+    return lambda observations: agent.mean_actions(observations[:, None], actor)[:, 0]
+
+
 class SACActing:
     """Acting of a method with one SAC agent that keeps every transition of the environment it
     steps in ``self.buffer`` (SAC, DARC, H2O): SAC exploration, the deterministic policy deployed."""
@@ -110,6 +120,9 @@ class SACActing:
 
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
         return deploy_actions(self.agent, observations)
+
+    def host_deploy(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        return host_deploy_actions(self.agent)
 
     def record(self, observations: torch.Tensor, stored_actions: torch.Tensor, rewards: torch.Tensor,
                next_observations: torch.Tensor, terminations: torch.Tensor) -> None:
@@ -128,6 +141,9 @@ class OfflineActing:
 
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
         return deploy_actions(self.agent, observations)
+
+    def host_deploy(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        return host_deploy_actions(self.agent)
 
     def record(self, *transition: torch.Tensor) -> None:
         raise RuntimeError(f"{self.name} is offline: it takes no environment steps")

@@ -167,10 +167,15 @@ class SACAgent:
         squash = 2.0 * (math.log(2.0) - pre_tanh - torch.nn.functional.softplus(-2.0 * pre_tanh))
         return torch.tanh(pre_tanh), gaussian_log_prob - squash.sum(-1)
 
-    def mean_actions(self, observations: torch.Tensor) -> torch.Tensor:
-        """The deterministic action used in evaluation: tanh of the Gaussian mean."""
+    def mean_actions(self, observations: torch.Tensor, params: Params | None = None) -> torch.Tensor:
+        """The deterministic action used in evaluation: tanh of the Gaussian mean (of ``params``,
+        default the actor, e.g. :meth:`actor_copy`'s)."""
         with torch.no_grad():
-            return torch.tanh(self._mean_log_std(observations, self.actor)[0])
+            return torch.tanh(self._mean_log_std(observations, self.actor if params is None else params)[0])
+
+    def actor_copy(self, device: torch.device | str = "cpu") -> Params:
+        """A detached copy of the actor's parameters on ``device``: the policy as it is now."""
+        return [p.detach().to(device, copy=True) for p in self.actor]
 
     # --- the critics -----------------------------------------------------------------------
 

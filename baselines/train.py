@@ -80,7 +80,7 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
           eval_every: int | None = None, eval_episodes: int = 10, checkpoint_every: int | None = None,
           threads: int | None = 1, progress: bool = True, stop_after: int | None = None,
           track: str | None = None, budget: str | None = None, device: str = "cpu",
-          source_dataset: str | None = None) -> dict[str, Any] | None:
+          source_dataset: str | None = None, eval_on_device: bool = False) -> dict[str, Any] | None:
     """Train ``algo`` on ``task`` for ``steps`` steps with seeds ``seed .. seed + n_seeds - 1``.
 
     ``steps`` counts interaction-environment steps (gradient updates for offline CQL and the
@@ -99,9 +99,14 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
 
     ``device`` (``cpu``, ``cuda``, ``cuda:N`` or ``auto``) holds the networks, buffers and random
     streams; a run is deterministic per device (CPU and CUDA draw different random numbers), and the
-    device is recorded in ``config.json`` and ``result.json``.
+    device is recorded in ``config.json`` and ``result.json``. On an accelerator the in-training
+    evaluations act from a CPU copy of the policy; ``eval_on_device`` keeps them on the device
+    (the way to measure the difference; recorded in ``config.json``).
     """
     device = resolve_device(device)
+    if eval_on_device and device == "cpu":
+        raise OffdynError("--eval-on-device keeps an accelerator run's evaluations on the accelerator; this run is "
+                          "on the CPU, where they are already: drop it, or use --device cuda")
     method_spec = get_algorithm(algo)
     pair = get_task(task)
     if steps is not None:
@@ -133,6 +138,8 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
     if source_dataset is not None:
         # Only offline-source runs carry the key, so older run folders still resume.
         settings["source_dataset"] = source_dataset
+    if eval_on_device:  # likewise only when set
+        settings["eval_on_device"] = True
     warnings = budget_warnings(algo, config, steps)
 
     # Everything below up to the lock only reads: bad input fails before anything is written.
@@ -180,7 +187,7 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
                                                              "dataset_provenance": dataset_provenance,
                                                              "track": plan.track, "budget": plan.budget,
                                                              "device": device} | extra)
-        loop = _Loop(method, pair, seeds, out, plan.target_step_limit, device)
+        loop = _Loop(method, pair, seeds, out, plan.target_step_limit, device, eval_on_device)
         start, notes = loop.restore() if resuming else (0, [])
         for message in warnings:
             print(f"warning: {message}", file=sys.stderr)
@@ -214,8 +221,9 @@ def _run(loop: _Loop, algo: str, pair: TaskPair, start: int, steps: int, eval_ev
             done = step + 1
             bar.update(1)
             if done % eval_every == 0 or done == steps:
+                started = time.perf_counter()
                 returns = loop.evaluate(eval_episodes)
-                loop.log(done, returns, metrics)
+                loop.log(done, returns, metrics, time.perf_counter() - started)
                 bar.set_postfix(target_return=f"{returns.mean():.1f}")
                 final_returns = returns if done == steps else None
             if done % checkpoint_every == 0 or done == steps:
@@ -378,8 +386,9 @@ class _Clock:
 
 class _Loop:
     def __init__(self, method: Method, pair: TaskPair, seeds: Sequence[int], out: Path,
-                 target_step_limit: int | None = None, device: str = "cpu") -> None:
+                 target_step_limit: int | None = None, device: str = "cpu", eval_on_device: bool = False) -> None:
         self.method, self.out, self.seeds, self.device = method, out, seeds, torch.device(device)
+        self.eval_on_device = eval_on_device
         self.target_step_limit = target_step_limit
         self.train_envs = _Envs(pair, method.interaction, seeds, 1) if method.interaction != "none" else None
         self.target_envs = _Envs(pair, "target", seeds, 2) if method.target_step_every else None
@@ -418,16 +427,23 @@ class _Loop:
         return steps // every if every else 0
 
     def evaluate(self, episodes: int) -> np.ndarray:
-        """Per-seed, per-episode target returns of the deployed policy, ``[seeds, episodes]``."""
+        """Per-seed, per-episode target returns of the deployed policy, ``[seeds, episodes]``.
+
+        On an accelerator the policy acts from a CPU copy of its parameters (the method's
+        ``host_deploy``), so an episode step waits on no device: where several runs share one
+        GPU, each wait would queue behind the others' updates. ``eval_on_device`` keeps it there."""
         returns = np.zeros((len(self.seeds), episodes))
         space = self.eval_envs[0].action_space
         low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+        deploy, device = self.method.deploy, self.device
+        if device.type != "cpu" and not self.eval_on_device and hasattr(self.method, "host_deploy"):
+            deploy, device = self.method.host_deploy(), torch.device("cpu")
         for e in range(episodes):
             obs = np.stack([env.reset(seed=EVAL_SEED + e)[0] for env in self.eval_envs])
             running = np.ones(len(self.seeds), dtype=bool)
             while running.any():
-                actions = self.method.deploy(torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-                                             ).cpu().numpy().astype(np.float64)
+                actions = deploy(torch.as_tensor(obs, dtype=torch.float32, device=device)
+                                 ).cpu().numpy().astype(np.float64)
                 scaled = low + (actions + 1.0) * 0.5 * (high - low)
                 for i in np.flatnonzero(running):
                     obs[i], reward, terminated, truncated, _ = self.eval_envs[i].step(scaled[i])
@@ -435,12 +451,15 @@ class _Loop:
                     running[i] = not (terminated or truncated)
         return returns
 
-    def log(self, step: int, returns: np.ndarray, metrics: Mapping[str, torch.Tensor]) -> None:
+    def log(self, step: int, returns: np.ndarray, metrics: Mapping[str, torch.Tensor],
+            evaluation_wall_time_s: float) -> None:
         spent = self.clock.now()
         line = {"step": step, "target_return": [float(x) for x in returns.mean(axis=1)],
                 "target_return_mean": float(returns.mean()),
                 "train": {k: float(torch.as_tensor(v).float().mean()) for k, v in metrics.items()},
-                "wall_time_s": round(spent.wall_time_s, 3), "cpu_time_s": round(spent.cpu_time_s, 3)}
+                "wall_time_s": round(spent.wall_time_s, 3), "cpu_time_s": round(spent.cpu_time_s, 3),
+                # where a run's time goes: this evaluation's share of it (wall_time_s is cumulative)
+                "evaluation_wall_time_s": round(evaluation_wall_time_s, 3)}
         with open(self.out / METRICS_FILE, "a") as f:
             f.write(json.dumps(line) + "\n")
 

@@ -10,8 +10,8 @@
 # the device lacks, and each task's installed target dataset (the device's h5py is not the pinned
 # one, so a rebuild there would not match the manifest's sha256). What travels must stay under
 # 64 MiB: the wheels take about 26 MB, a task's dataset about 3 MB packed. Processes on one GPU take
-# turns, so more tasks do not finish sooner: a lease finishes about two lite CQL tasks (README,
-# Devices), and a run unfinished at its end starts over in the next lease.
+# turns, so more tasks do not finish sooner: the lease measured (evaluations on the GPU) would have
+# finished about two lite CQL tasks (README, Devices); a run unfinished at its end starts over.
 #
 # There, the sweep (local backend, one worker per task) starts in its own process session, so it
 # outlives the call; a second call made at once (before the machine's idle release) finds it and
@@ -81,7 +81,7 @@ EOF
   echo "$#" > "$dir/workers"
   if [ "$method/$budget" = cql/lite ] && [ $# -gt 2 ]; then
     # Measured on an H200: four lite CQL tasks at once stood at 25-45% after 9 minutes.
-    echo "note: $# lite CQL tasks: a 15-minute lease finishes about two (README, Devices); the rest start over next time" >&2
+    echo "note: $# lite CQL tasks: the measured lease would finish about two (README, Devices); the rest start over next time" >&2
   fi
   # One xz archive: the datasets shrink about 3x, so more tasks fit in what a call carries.
   tar -cJf "$dir/payload.tar.xz" -C "$dir" wheels datasets && rm -rf "$dir/wheels" "$dir/datasets"

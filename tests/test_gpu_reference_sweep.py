@@ -49,7 +49,7 @@ def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_
     tasks = ["hopper-gravity-0.5", "hopper-friction-0.5", "walker2d-gravity-2.0"]
     prepared = _script("--prepare", "cql", "lite", *tasks, tmp_path=tmp_path, DEVICE="cpu")
     assert prepared.returncode == 0, prepared.stderr
-    assert "note: 3 lite CQL tasks: a 15-minute lease finishes about two" in prepared.stderr
+    assert "note: 3 lite CQL tasks: the measured lease would finish about two" in prepared.stderr
     assert f"tasks: [{', '.join(tasks)}]" in (tmp_path / "device-sweep" / "spec.yaml").read_text()
 
 

@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 from typer.testing import CliRunner
 
+from baselines.algorithms import ALGORITHMS, get_algorithm
 from baselines.method import MethodContext
 from baselines.online_sac import Config as OnlineConfig
 from baselines.online_sac import build_source
-from baselines.sac import SACConfig
+from baselines.sac import Batch, SACConfig
 from baselines.train import resolve_device, train
 from offdyn_bench.cli import app
 from offdyn_bench.errors import OffdynError
@@ -187,3 +189,67 @@ def test_only_the_newest_graphed_update_of_a_process_replays():
     with pytest.raises(RuntimeError, match=r"only the newest may replay.*one GraphedUpdate per process"):
         first()
     assert torch.isfinite(torch.stack([second() for _ in range(20)])).all()
+
+
+_MATL_FAMILY = {"matl", "matl-u", "matl-f", "independent", "direct-transfer", "fine-tuning"}
+"""TRPO agents without ``host_deploy``: they evaluate on their device (the CPU, on a CPU run)."""
+
+
+@pytest.mark.parametrize("algo", sorted(set(ALGORITHMS) - _MATL_FAMILY))
+def test_host_deploy_acts_as_deploy_does_from_a_copy_of_the_policy(algo):
+    """What an accelerator run evaluates with: the deployed action, exactly, from CPU copies of the
+    policy's parameters taken when asked (later updates do not reach them)."""
+    g = torch.Generator().manual_seed(0)
+
+    def data(n: int = 64) -> Batch:
+        return Batch(torch.randn(n, 4, generator=g), torch.rand(n, 2, generator=g) * 2 - 1, torch.randn(n, generator=g),
+                     torch.randn(n, 4, generator=g), torch.zeros(n))
+
+    spec = get_algorithm(algo)
+    method = spec.build(spec.default_config(), MethodContext(4, 2, (0, 1), target_data=data(), source_data=data()))
+    observations = torch.randn(2, 4, generator=g)
+    host = method.host_deploy()
+    before = host(observations)
+    assert before.device.type == "cpu" and torch.equal(before, method.deploy(observations))
+    with torch.no_grad():
+        for parameter in method.agent.actor:
+            parameter.add_(0.5)
+    assert not torch.equal(method.deploy(observations), before)  # the policy did change...
+    assert torch.equal(host(observations), before)                # ...and the copy did not
+
+
+def test_eval_on_device_on_a_cpu_run_is_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(OffdynError, match="--eval-on-device keeps an accelerator run's evaluations on the accelerator"):
+        train("sac-source", PENDULUM, steps=40, out=tmp_path / "run", overrides=TINY, progress=False,
+              eval_on_device=True)
+    result = CliRunner().invoke(app, ["train", "sac-source", "--task", PENDULUM, "--steps", "40", "--out",
+                                      str(tmp_path / "cli"), "--eval-on-device", "--no-progress"])
+    assert result.exit_code == 2 and "error: --eval-on-device keeps" in result.output
+    assert not (tmp_path / "run").exists() and not (tmp_path / "cli").exists()
+
+
+def test_each_evaluation_logs_its_own_wall_time(tmp_path):
+    train("sac-source", PENDULUM, steps=60, out=tmp_path / "run", overrides=TINY, eval_every=20, eval_episodes=2,
+          progress=False)
+    lines = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [line["step"] for line in lines] == [20, 40, 60]
+    for previous, line in zip([{"wall_time_s": 0.0}, *lines], lines):
+        # one evaluation's time, inside the (cumulative) wall time spent since the previous line
+        assert 0 < line["evaluation_wall_time_s"] <= line["wall_time_s"] - previous["wall_time_s"] + 1e-3
+
+
+@needs_cuda
+def test_a_cuda_run_evaluates_from_a_host_copy_and_trains_as_with_device_evaluation(tmp_path, pendulum_dataset):
+    overrides = {k: v for k, v in TINY.items() if k.startswith("sac.")}
+    common = {"steps": 80, "n_seeds": 2, "dataset": str(pendulum_dataset), "eval_episodes": 2, "eval_every": 40,
+              "progress": False, "device": "cuda", "overrides": overrides}
+    host = train("cql", PENDULUM, out=tmp_path / "host", **common)
+    device = train("cql", PENDULUM, out=tmp_path / "device", eval_on_device=True, **common)
+    assert json.loads((tmp_path / "device" / "config.json").read_text())["eval_on_device"] is True
+    assert "eval_on_device" not in json.loads((tmp_path / "host" / "config.json").read_text())
+
+    def losses(run: str) -> list[dict]:
+        return [json.loads(line)["train"] for line in (tmp_path / run / "metrics.jsonl").read_text().splitlines()]
+
+    assert losses("host") == losses("device")  # where the evaluation acts changes no update
+    assert all(np.isfinite(r).all() for run in (host, device) for r in run["returns"].values())
