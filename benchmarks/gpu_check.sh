@@ -53,6 +53,10 @@ python3 -c "import torch, mujoco, offdyn_bench, baselines; print('torch', torch.
 echo "== CUDA tests"
 timeout 180 python3 -m pytest -q -p no:cacheprovider tests/baselines/test_baselines_device.py 2>&1 | tee "$out/pytest-device.log" | tail -15
 
+echo "== four CQL runs sharing the GPU: evaluations from a CPU copy of the policy vs on the GPU"
+timeout 300 python3 benchmarks/bench_shared_gpu.py --runs 4 --steps 2000 --rounds 1 --task "$methods_task" \
+  --json "$out/bench-shared-gpu.json" 2>&1 | grep -v -e Warning -e installed
+
 echo "== updates (ours eager/graphed vs SB3) and a whole train run on CUDA vs one CPU core"
 timeout 150 python3 benchmarks/bench_gpu.py --rounds 3 --updates-per-round 300 --train-seeds 5 --train-cpu-seeds 1 \
   --train-steps 2500 --json "$out/bench-updates.json" 2>&1 | tee "$out/bench-updates.log" | grep -v Warning

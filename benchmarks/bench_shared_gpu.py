@@ -1,0 +1,122 @@
+"""Several training runs sharing one GPU, as a lease's reference sweep runs them: their evaluations
+acting from a CPU copy of the policy (the default) against acting on the GPU (``--eval-on-device``),
+side by side.
+
+Each round starts ``--runs`` processes at once (``offdyn-bench train``, ``--seeds`` seeds each, one
+torch thread, the CUDA-graph update where the method has one) and times them until the last one
+ends; rounds alternate between the two ways of evaluating. Per way: seed-steps per second of the
+whole round (``runs x seeds x steps / wall``), and the share of the runs' time their evaluations
+took (``evaluation_wall_time_s`` over ``wall_time_s`` of ``metrics.jsonl``). The ratio is host over
+device per pair of rounds, median over pairs. ``same_updates`` says whether each host run's losses
+equal its device partner's at every evaluation (they must: where the policy acts in an evaluation
+changes no update).
+
+HalfCheetah by default: its episodes never end early, so an evaluation's length does not depend on
+how well the policy has learnt. Without a CUDA device it says so and measures nothing (exit status
+0), unless ``--device cpu --ways host`` asks for a check of the script itself.
+
+    python benchmarks/bench_shared_gpu.py --runs 4 --steps 2000 --rounds 1 --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from offdyn_bench.datasets.ensure import ensure_dataset
+from offdyn_bench.protocol import official_dataset
+
+GRAPHED = {"cql", "sac-source", "sac-target"}
+"""Methods with the CUDA-graph update (``cuda_graph=true``), as the lease's sweep runs them."""
+
+
+def _round(args: argparse.Namespace, way: str, folder: Path) -> dict:
+    commands = []
+    for index in range(args.runs):
+        command = [sys.executable, "-m", "offdyn_bench", "train", args.method, "--task", args.task,
+                   "--steps", str(args.steps), "--eval-every", str(args.eval_every),
+                   "--eval-episodes", str(args.eval_episodes), "--n-seeds", str(args.seeds),
+                   "--seed", str(index * args.seeds), "--threads", "1", "--device", args.device,
+                   "--no-progress", "--out", str(folder / f"run-{index}")]
+        if args.device != "cpu" and args.method in GRAPHED:
+            command += ["--set", "cuda_graph=true"]
+        if way == "device":
+            command.append("--eval-on-device")
+        commands.append(command)
+    start = time.perf_counter()
+    processes = [subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                 for command in commands]
+    failures = [(p.args, p.communicate()[1]) for p in processes if p.wait() != 0]
+    wall_s = time.perf_counter() - start
+    if failures:
+        command, stderr = failures[0]
+        sys.exit(f"error: a {way} run failed: {' '.join(command)}\n{stderr[-2000:]}")
+    lines = [[json.loads(line) for line in (folder / f"run-{i}" / "metrics.jsonl").read_text().splitlines()]
+             for i in range(args.runs)]
+    evaluation_share = statistics.mean(sum(line["evaluation_wall_time_s"] for line in run) / run[-1]["wall_time_s"]
+                                       for run in lines)
+    return {"way": way, "wall_s": round(wall_s, 2),
+            "seed_steps_per_s": round(args.runs * args.seeds * args.steps / wall_s, 1),
+            "evaluation_share": round(evaluation_share, 3),
+            "losses": [[line["train"] for line in run] for run in lines]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--method", default="cql")
+    parser.add_argument("--task", default="halfcheetah-friction-5.0")
+    parser.add_argument("--runs", type=int, default=4, help="processes sharing the GPU in each round")
+    parser.add_argument("--seeds", type=int, default=5, help="seeds trained together in each process")
+    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--eval-every", type=int, default=1000)
+    parser.add_argument("--eval-episodes", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=1, help="pairs of rounds (host, then device)")
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--ways", nargs="+", choices=["host", "device"], default=["host", "device"])
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args(argv)
+    if args.device != "cpu" and not torch.cuda.is_available():
+        print(f"no CUDA device visible to torch {torch.__version__}: nothing measured")
+        return 0
+    if args.device == "cpu" and "device" in args.ways:
+        parser.error("--device cpu: a CPU run evaluates on the CPU already; use --ways host to check the script")
+    dataset = official_dataset(args.task, "offline-target")
+    if dataset is not None:  # installed (or verified) once, not by every process at once
+        ensure_dataset(dataset, progress=False, echo=lambda line: print(line, file=sys.stderr))
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    rounds: list[dict] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.rounds):
+            for way in args.ways:
+                result = _round(args, way, Path(tmp) / f"{way}-{r}")
+                rounds.append(result)
+                print(f"round {r} {way}: {result['wall_s']} s, {result['seed_steps_per_s']} seed-steps/s, "
+                      f"evaluations {100 * result['evaluation_share']:.0f}% of the runs' time", flush=True)
+    summary: dict = {"method": args.method, "task": args.task, "runs": args.runs, "seeds": args.seeds,
+                     "steps": args.steps, "eval_every": args.eval_every, "eval_episodes": args.eval_episodes,
+                     "device": torch.cuda.get_device_name(0) if args.device != "cpu" else "cpu",
+                     "torch": torch.__version__, "rounds": [{k: v for k, v in r.items() if k != "losses"}
+                                                            for r in rounds]}
+    if args.ways == ["host", "device"]:
+        pairs = list(zip(rounds[0::2], rounds[1::2]))
+        summary["host_over_device"] = statistics.median(host["seed_steps_per_s"] / device["seed_steps_per_s"]
+                                                        for host, device in pairs)
+        summary["same_updates"] = all(host["losses"] == device["losses"] for host, device in pairs)
+        print(f"host evaluation over device evaluation: {summary['host_over_device']:.2f}x seed-steps/s "
+              f"(median of {len(pairs)}); same updates: {summary['same_updates']}")
+    if args.json:
+        args.json.write_text(json.dumps(summary, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
