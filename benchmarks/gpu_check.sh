@@ -18,12 +18,7 @@ if [ "${1:-}" = "--prepare" ]; then
   set -e
   mkdir -p .git/info .whl .device-data
   for d in /.whl/ /.device-data/; do grep -qx "$d" .git/info/exclude 2>/dev/null || echo "$d" >> .git/info/exclude; done
-  for pkg in mujoco==3.17.0 gymnasium==1.4.0 minari==0.5.4 glfw farama-notifications gymnasium-robotics==1.4.2 \
-             pettingzoo==1.27.0 stable-baselines3==2.9.2; do
-    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
-      --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
-      --platform manylinux2014_x86_64 -d .whl "$pkg"
-  done
+  bash scripts/device_wheels.sh .whl gymnasium-robotics==1.4.2 pettingzoo==1.27.0 stable-baselines3==2.9.2
   wheel=$(ls .whl/gymnasium_robotics-*.whl)
   tmp=$(mktemp -d)
   (cd "$tmp" && unzip -q "$OLDPWD/$wheel" && rm -rf gymnasium_robotics/envs/assets/kitchen_franka \

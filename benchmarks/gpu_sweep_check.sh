@@ -16,12 +16,8 @@ if [ "${1:-}" = "--prepare" ]; then
   set -e
   grep -qx /.device-sweep/ .git/info/exclude 2>/dev/null || echo /.device-sweep/ >> .git/info/exclude
   work=$(mktemp -d)
-  for pkg in mujoco==3.17.0 gymnasium==1.4.0 minari==0.5.4 glfw==2.11.0 farama-notifications==0.0.6 \
-             ray==2.60.0 jsonschema==4.26.0 jsonschema-specifications==2025.9.1 referencing==0.37.0 rpds-py==2026.9.1; do
-    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
-      --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
-      --platform manylinux2014_x86_64 -d "$work/wheels" "$pkg"
-  done
+  bash scripts/device_wheels.sh "$work/wheels" ray==2.60.0 jsonschema==4.26.0 jsonschema-specifications==2025.9.1 \
+    referencing==0.37.0 rpds-py==2026.9.1
   mkdir -p "$work/site" .device-sweep
   for wheel in "$work"/wheels/*.whl; do unzip -q -o "$wheel" -d "$work/site"; done
   (cd "$work/site/ray" && rm -rf jars dashboard/client/build rllib serve data train tune llm)

@@ -46,11 +46,7 @@ if [ "${1:-}" = "--prepare" ]; then
   trap 'rm -rf "$dir"' EXIT
   rm -rf "$dir" && mkdir -p "$dir/wheels" "$dir/datasets"
   # SKIP_WHEELS=1: no wheels (a check of this script where the packages are installed).
-  [ "${SKIP_WHEELS:-0}" = 1 ] || for pkg in mujoco==3.17.0 gymnasium==1.4.0 minari==0.5.4 glfw==2.11.0 farama-notifications==0.0.6; do
-    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
-      --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
-      --platform manylinux2014_x86_64 -d "$dir/wheels" "$pkg"
-  done
+  [ "${SKIP_WHEELS:-0}" = 1 ] || bash scripts/device_wheels.sh "$dir/wheels"
   tasks=""
   for task in "$@"; do
     # Installs (or verifies) the dataset, its messages on stderr, and prints its id; a wrong task
