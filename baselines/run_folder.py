@@ -177,6 +177,16 @@ class TrainingProgress:
     spent: tuple[float, float] | None = None
     """Wall and CPU seconds at its last learning-curve line, over every attempt (None before the
     first line, or where that line's times are not non-negative numbers)."""
+    evaluation_wall_s: float | None = None
+    """Wall seconds its evaluations took, summed over the curve's lines (None where no line records
+    it: curves from before lines did)."""
+
+    @property
+    def evaluation_share(self) -> float | None:
+        """The share of its wall time its evaluations took (None where either is unknown)."""
+        if self.evaluation_wall_s is None or self.spent is None or self.spent[0] <= 0:
+            return None
+        return min(1.0, self.evaluation_wall_s / self.spent[0])
 
 
 def training_progress(out: Path) -> TrainingProgress | None:
@@ -189,15 +199,19 @@ def training_progress(out: Path) -> TrainingProgress | None:
     if not _POSITIVE_INTEGER.accepts(steps):
         return None
     points: list[tuple[int, Any, Any]] = []
+    evaluation_wall_s = None
     try:
         for line in (out / METRICS_FILE).read_text(errors="replace").splitlines():
             try:
                 entry = json.loads(line)
                 step, wall, cpu = entry.get("step"), entry.get("wall_time_s"), entry.get("cpu_time_s")
+                evaluation = entry.get("evaluation_wall_time_s")
             except (ValueError, AttributeError):
                 continue  # a line cut off by a kill
             if _POSITIVE_INTEGER.accepts(step) and step <= steps:
                 points.append((step, wall, cpu))
+                if NON_NEGATIVE.accepts(evaluation):
+                    evaluation_wall_s = (evaluation_wall_s or 0.0) + float(evaluation)
     except OSError:
         pass  # no curve yet: nothing evaluated
     points.sort(key=lambda point: point[0])
@@ -209,7 +223,8 @@ def training_progress(out: Path) -> TrainingProgress | None:
     spent = None
     if points and NON_NEGATIVE.accepts(points[-1][1]) and NON_NEGATIVE.accepts(points[-1][2]):
         spent = (float(points[-1][1]), float(points[-1][2]))
-    return TrainingProgress(points[-1][0] / steps if points else 0.0, per_run, read_training_compute(out), spent)
+    return TrainingProgress(points[-1][0] / steps if points else 0.0, per_run, read_training_compute(out), spent,
+                            evaluation_wall_s)
 
 
 def read_training_compute(out: Path) -> TrainingCompute | None:

@@ -126,7 +126,9 @@ if kill -0 "$(cat "$pid_file")" 2>/dev/null; then
 else
   echo "the sweep has ended"
 fi
-tr '\r' '\n' < "$sweep_root/sweep.log" | grep -v -e Warning -e "^ *logger" | tail -8
+tr '\r' '\n' < "$sweep_root/sweep.log" | grep -v -e Warning -e "^ *logger" | tail -3
+# Each run's steps, the share of its time its evaluations took, its compute: what a lease measured.
+python3 -m offdyn_bench sweep "$dir/spec.yaml" --status 2>&1 | grep -v Warning
 cp "$sweep_root/sweep.log" "$out/sweep.log"
 [ -d "$sweep_root/gpu-reference" ] && tar -cJf "$out/sweep.tar.xz" -C "$sweep_root" --exclude=checkpoints gpu-reference
 ls -la "$out"

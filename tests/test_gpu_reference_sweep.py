@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import tarfile
@@ -64,6 +65,8 @@ def test_a_prepared_sweep_runs_and_comes_back_as_one_archive_without_checkpoints
     ran = _script("600", tmp_path=tmp_path, OUT=str(tmp_path / "out"))
     assert ran.returncode == 0, ran.stderr
     assert "the sweep has ended" in ran.stdout and "1/1 runs done, 0 failed" in ran.stdout
+    # the status table: steps, and the share of the time the evaluations took
+    assert re.search(r"cql/hopper-gravity-0\.5/seeds-0-4 +done +100% +\d+% +1 ", ran.stdout), ran.stdout
     with tarfile.open(tmp_path / "out" / "sweep.tar.xz") as archive:
         names = archive.getnames()
         run = "gpu-reference/runs/cql/hopper-gravity-0.5/seeds-0-4"

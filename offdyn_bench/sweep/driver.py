@@ -549,16 +549,22 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
             engine.close()
 
 
-def run_table(runs: list[Run], records: dict[str, RunRecord], steps: dict[str, str] | None = None) -> list[str]:
+def run_table(runs: list[Run], records: dict[str, RunRecord], steps: dict[str, str] | None = None,
+              evaluations: dict[str, str] | None = None) -> list[str]:
     """A line per run: status, attempts, compute over finished attempts, mean return; and with
-    ``steps`` (per run id, how far its training has got) a column for it."""
+    ``steps`` (per run id, how far its training has got) a column for it, and with ``evaluations``
+    (per run id, the share of its time its evaluations took) one for that where any run has it."""
     steps_column = f" {'steps':>5s}" if steps is not None else ""
-    header = f"{'run':58s} {'status':7s}{steps_column} {'tries':>5s} {'wall':>8s} {'cpu':>8s} {'return':>9s}"
+    evaluations = evaluations or None
+    evaluation_column = f" {'eval':>5s}" if evaluations is not None else ""
+    header = (f"{'run':58s} {'status':7s}{steps_column}{evaluation_column} {'tries':>5s} {'wall':>8s} {'cpu':>8s} "
+              f"{'return':>9s}")
     lines = [header, "-" * len(header)]
     for run in runs:
         record = records[run.run_id]
         mean = f"{record.mean_return:9.1f}" if record.mean_return is not None else f"{'-':>9s}"
         step = f" {steps.get(run.run_id, '-'):>5s}" if steps is not None else ""
+        step += f" {evaluations.get(run.run_id, '-'):>5s}" if evaluations is not None else ""
         lines.append(f"{run.run_id:58s} {record.status:7s}{step} {record.attempts:5d} "
                      f"{format_duration(record.wall_time_s):>8s} {format_duration(record.cpu_time_s):>8s} {mean}")
     return lines

@@ -54,6 +54,12 @@ class SweepStatus:
                  if progress is not None}
         return steps | {run_id: "100%" for run_id, record in self.records.items() if record.status == "done"}
 
+    def evaluations(self) -> dict[str, str]:
+        """Per run id whose curve records it, the share of its training's wall time its evaluations
+        took (``12%``): where a run's time goes, e.g. on a GPU shared by several runs."""
+        return {run_id: f"{100 * progress.evaluation_share:.0f}%" for run_id, progress in self.trainings.items()
+                if progress is not None and progress.evaluation_share is not None}
+
 
 def read_status(spec: SweepSpec) -> SweepStatus:
     """Read the sweep of ``spec`` from its output folder (an empty one: every run pending)."""
@@ -119,7 +125,7 @@ def status_lines(status: SweepStatus, spec_path: str = "SPEC") -> list[str]:
                 f"{spec_path}` to continue (runs cut short resume from their checkpoints)")
     else:
         head = f"sweep {out}: no sweep is running on it; every run has ended"
-    lines = [head, *run_table(status.runs, status.records, status.steps()),
+    lines = [head, *run_table(status.runs, status.records, status.steps(), status.evaluations()),
              *failure_lines(status.runs, status.records)]
     progress = _Progress(None, len(status.runs), {
         run.run_id: "train" if run.shared_training is None else "score" for run in status.runs},

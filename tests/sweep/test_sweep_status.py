@@ -38,13 +38,16 @@ def _row(lines: list[str], run_id: str) -> list[str]:
     return row.split()
 
 
-def _half_trained(out: Path, run_id: str, steps_done: int, of_steps: int = 300) -> None:
-    """A run folder as a training leaves it part-way: its config and a learning curve to ``steps_done``."""
+def _half_trained(out: Path, run_id: str, steps_done: int, of_steps: int = 300,
+                  evaluation_s: float | None = None) -> None:
+    """A run folder as a training leaves it part-way: its config and a learning curve to ``steps_done``
+    (with ``evaluation_s``, each line's evaluation took that long, as lines record it now)."""
     folder = out / "runs" / run_id
     folder.mkdir(parents=True)
     (folder / "config.json").write_text(json.dumps({"steps": of_steps}))
+    evaluation = {} if evaluation_s is None else {"evaluation_wall_time_s": evaluation_s}
     (folder / "metrics.jsonl").write_text("".join(
-        json.dumps({"step": step, "wall_time_s": step / 10.0, "cpu_time_s": step / 12.5}) + "\n"
+        json.dumps({"step": step, "wall_time_s": step / 10.0, "cpu_time_s": step / 12.5} | evaluation) + "\n"
         for step in range(50, steps_done + 1, 50)))
 
 
@@ -70,7 +73,7 @@ def test_status_of_a_finished_sweep_reads_its_folders_and_writes_nothing(finishe
     for run in finished_sweep.runs:
         row = _row(lines, run.run_id)
         record = finished_sweep.records[run.run_id]
-        assert row[1:4] == ["done", "100%", "1"]
+        assert row[1:3] == ["done", "100%"] and re.fullmatch(r"\d+%", row[3]) and row[4] == "1"  # row[3]: eval
         assert float(row[-1]) == round(record.mean_return, 1)
     assert lines[-1] == "sweep: 2/2 done, 0 running, 0 failed, 0 pending; ETA 0s"
     # The driver that ran it recorded itself for this view.
@@ -163,7 +166,8 @@ def test_a_damaged_state_file_is_read_as_far_as_it_holds_by_status_and_by_the_sw
     lines = _status(spec_path)
     assert lines[0] == f"sweep {out}: no sweep is running on it; every run has ended"
     # Attempts: its three history entries; times: the one valid number (12.5 s of wall).
-    assert _row(lines, SEED_0)[1:6] == ["done", "100%", "3", "12s", "0s"]
+    row = _row(lines, SEED_0)
+    assert row[1:3] == ["done", "100%"] and re.fullmatch(r"\d+%", row[3]) and row[4:7] == ["3", "12s", "0s"]
     assert lines[-1] == "sweep: 2/2 done, 0 running, 0 failed, 0 pending; ETA 0s"
     # The sweep itself takes the same file, finds both runs done and writes a sound state.
     result = runner.invoke(app, ["sweep", str(spec_path), "--quiet"])
@@ -171,3 +175,26 @@ def test_a_damaged_state_file_is_read_as_far_as_it_holds_by_status_and_by_the_sw
     state = json.loads((out / STATE_FILE).read_text())
     assert {key: state["runs"][key]["status"] for key in (SEED_0, SEED_1)} == {SEED_0: "done", SEED_1: "done"}
     assert state["runs"][SEED_0]["wall_time_s"] == 12.5 and state["driver"]["pid"] == os.getpid()
+
+
+def test_status_shows_the_share_of_each_trainings_time_its_evaluations_took(tmp_path, tiny_spec, write_spec):
+    out = tmp_path / "out"
+    spec_path = write_spec(tmp_path / "spec.json", tiny_spec(out))
+    _half_trained(out, SEED_0, steps_done=150, evaluation_s=1.5)  # 3 evaluations, 4.5 s of 15 s
+    _half_trained(out, SEED_1, steps_done=100)                     # a curve from before lines recorded it
+    _state(out, {SEED_0: _entry("running"), SEED_1: _entry("running")})
+    with _sweep_lock(out):
+        lines = _status(spec_path)
+    assert lines[1].split()[:5] == ["run", "status", "steps", "eval", "tries"]
+    assert _row(lines, SEED_0)[1:7] == ["running", "50%", "30%", "1", "15s", "12s"]
+    assert _row(lines, SEED_1)[1:5] == ["running", "33%", "-", "1"]
+
+
+def test_status_has_no_eval_column_where_no_curve_records_it(tmp_path, tiny_spec, write_spec):
+    out = tmp_path / "out"
+    spec_path = write_spec(tmp_path / "spec.json", tiny_spec(out))
+    _half_trained(out, SEED_0, steps_done=150)
+    _state(out, {SEED_0: _entry("running"), SEED_1: _entry("pending", attempts=0)})
+    with _sweep_lock(out):
+        lines = _status(spec_path)
+    assert "eval" not in lines[1].split() and _row(lines, SEED_0)[1:4] == ["running", "50%", "1"]
