@@ -458,7 +458,7 @@ class _Loop:
                 "target_return_mean": float(returns.mean()),
                 "train": {k: float(torch.as_tensor(v).float().mean()) for k, v in metrics.items()},
                 "wall_time_s": round(spent.wall_time_s, 3), "cpu_time_s": round(spent.cpu_time_s, 3),
-                # where a run's time goes: this evaluation's share of it (wall_time_s is cumulative)
+                # this evaluation's own wall time (wall_time_s is the run's total so far): where the time goes
                 "evaluation_wall_time_s": round(evaluation_wall_time_s, 3)}
         with open(self.out / METRICS_FILE, "a") as f:
             f.write(json.dumps(line) + "\n")
