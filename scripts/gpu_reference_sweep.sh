@@ -84,7 +84,7 @@ EOF
   cat "$dir/spec.yaml"
   tracked=$(git ls-files -z | xargs -0 du -cb 2>/dev/null | tail -1 | cut -f1)
   carried=$(du -sb "$dir" | cut -f1)
-  echo "travels: $(( (tracked + carried) / 1048576 )) MiB of 64 (tracked $(( tracked / 1048576 )), $dir $(( carried / 1048576 )))"
+  echo "travels: $(( (tracked + carried) / 1048576 )) MiB of 64 (tracked $(( tracked / 1048576 )), $final $(( carried / 1048576 )))"
   [ $(( tracked + carried )) -lt $(( 64 * 1048576 )) ] || { echo "error: over 64 MiB: prepare fewer tasks" >&2; exit 1; }
   rm -rf "$final" && mv "$dir" "$final"
   exit 0

@@ -52,6 +52,8 @@ def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_
     assert prepared.returncode == 0, prepared.stderr
     assert "note: 3 lite CQL tasks: the measured lease would finish about two" in prepared.stderr
     assert f"tasks: [{', '.join(tasks)}]" in (tmp_path / "device-sweep" / "spec.yaml").read_text()
+    [travels] = [line for line in prepared.stdout.splitlines() if line.startswith("travels: ")]
+    assert f", {tmp_path / 'device-sweep'} " in travels  # the folder to carry, not the one it was built in
 
 
 @pytest.mark.slow
