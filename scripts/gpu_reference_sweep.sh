@@ -16,7 +16,9 @@
 # There, the sweep (local backend, one worker per task) starts in its own process session, so it
 # outlives the call; a second call made at once (before the machine's idle release) finds it and
 # only waits. Each call returns when the sweep ends or after WAIT_S seconds (default 540), with
-# the finished runs, checkpoints left out, in $OUT/sweep.tar.xz and the sweep's log. Then here:
+# the finished runs, checkpoints left out, in $OUT/sweep.tar.xz, the sweep's log, its status table
+# (each run's steps and the share of its time its evaluations took) and the GPU's load, sampled once
+# a minute ($OUT/gpu.log). Then here:
 #
 #   mkdir -p runs && tar -xJf <files_at>/sweep.tar.xz -C runs
 #   offdyn-bench leaderboard publish-runs runs/gpu-reference
@@ -118,7 +120,14 @@ else
   echo $! > "$pid_file"
 fi
 deadline=$(( SECONDS + wait_s ))
+sampled=$(( SECONDS - 60 ))  # the first sample at once
 while kill -0 "$(cat "$pid_file")" 2>/dev/null && [ $SECONDS -lt $deadline ]; do
+  # Once a minute, how busy the GPU is: a busy GPU and slow runs mean the updates are the limit.
+  if [ $(( SECONDS - sampled )) -ge 60 ]; then
+    sampled=$SECONDS
+    nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader 2>/dev/null \
+      | sed "s/^/$(date -u +%H:%M:%S) GPU busy, memory: /" >> "$sweep_root/gpu.log"
+  fi
   sleep 5
 done
 if kill -0 "$(cat "$pid_file")" 2>/dev/null; then
@@ -129,6 +138,7 @@ fi
 tr '\r' '\n' < "$sweep_root/sweep.log" | grep -v -e Warning -e "^ *logger" | tail -3
 # Each run's steps, the share of its time its evaluations took, its compute: what a lease measured.
 python3 -m offdyn_bench sweep "$dir/spec.yaml" --status 2>&1 | grep -v Warning
+[ -s "$sweep_root/gpu.log" ] && tail -4 "$sweep_root/gpu.log" && cp "$sweep_root/gpu.log" "$out/gpu.log"
 cp "$sweep_root/sweep.log" "$out/sweep.log"
 [ -d "$sweep_root/gpu-reference" ] && tar -cJf "$out/sweep.tar.xz" -C "$sweep_root" --exclude=checkpoints gpu-reference
 ls -la "$out"

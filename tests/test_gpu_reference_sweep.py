@@ -64,7 +64,13 @@ def test_a_prepared_sweep_runs_and_comes_back_as_one_archive_without_checkpoints
     spec = (tmp_path / "device-sweep" / "spec.yaml").read_text()
     assert "device: cpu" in spec and "seeds_per_run: 5" in spec and "cuda_graph" not in spec
 
-    ran = _script("600", tmp_path=tmp_path, OUT=str(tmp_path / "out"))
+    # A stand-in nvidia-smi: the load the script samples once a minute comes back in gpu.log.
+    fake = tmp_path / "bin" / "nvidia-smi"
+    fake.parent.mkdir()
+    fake.write_text('#!/bin/sh\ncase "$*" in *utilization*) echo "37 %, 1234 MiB";; *) echo "Stand-in GPU";; esac\n')
+    fake.chmod(0o755)
+    ran = _script("600", tmp_path=tmp_path, OUT=str(tmp_path / "out"),
+                  PATH=f"{fake.parent}{os.pathsep}{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
     assert ran.returncode == 0, ran.stderr
     assert "the sweep has ended" in ran.stdout and "1/1 runs done, 0 failed" in ran.stdout
     # the status table: steps, and the share of the time the evaluations took
@@ -78,3 +84,4 @@ def test_a_prepared_sweep_runs_and_comes_back_as_one_archive_without_checkpoints
     assert [seed["seed"] for seed in evaluation["seeds"]] == [0, 1, 2, 3, 4]
     assert all(len(seed["returns"]) == 20 for seed in evaluation["seeds"])  # the protocol's 20 episodes
     assert (tmp_path / "out" / "sweep.log").stat().st_size > 0
+    assert re.fullmatch(r"(\d\d:\d\d:\d\d GPU busy, memory: 37 %, 1234 MiB\n)+", (tmp_path / "out" / "gpu.log").read_text())
