@@ -55,7 +55,7 @@ import torch
 from baselines.buffers import DatasetSampler, ReplayBuffer
 from baselines.classifiers import ClassifierConfig, DomainClassifiers
 from baselines.limits import FINITE, NON_NEGATIVE, Limit, integer, one_of
-from baselines.method import MethodContext, require_target_data, uniform_actions
+from baselines.method import MethodContext, deploy_actions, host_deploy_actions, require_target_data, uniform_actions
 from baselines.networks import Params, mlp
 from baselines.sac import Batch, Metrics, SACAgent, SACConfig, sac_update, seed_generator
 
@@ -155,11 +155,12 @@ class DAP:
         return self.split(actions)[0], actions
 
     def deploy(self, observations: torch.Tensor) -> torch.Tensor:
-        return self.split(self.agent.mean_actions(observations[:, None])[:, 0])[1]
+        return self.split(deploy_actions(self.agent, observations))[1]
 
     def host_deploy(self) -> Callable[[torch.Tensor], torch.Tensor]:
-        actor = self.agent.actor_copy("cpu")
-        return lambda observations: self.split(self.agent.mean_actions(observations[:, None], actor)[:, 0])[1]
+        """The target half of the joint action, from a CPU copy of the actor."""
+        joint = host_deploy_actions(self.agent)
+        return lambda observations: self.split(joint(observations))[1]
 
     def record(self, observations, stored_actions, rewards, next_observations, terminations) -> None:
         self.buffer.add(observations, stored_actions, rewards, next_observations, terminations)

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, ClassVar, Literal, Protocol
 
 import torch
 
+from baselines.networks import Params
 from baselines.sac import Batch, Metrics, SACAgent
 
 if TYPE_CHECKING:
@@ -95,15 +96,15 @@ def explore_actions(agent: SACAgent, observations: torch.Tensor, step: int, rand
         return agent.sample_actions(observations[:, None])[0][:, 0]
 
 
-def deploy_actions(agent: SACAgent, observations: torch.Tensor) -> torch.Tensor:
-    """The deterministic policy action, ``tanh(mean)``."""
-    return agent.mean_actions(observations[:, None])[:, 0]
+def deploy_actions(agent: SACAgent, observations: torch.Tensor, actor: Params | None = None) -> torch.Tensor:
+    """The deterministic policy action, ``tanh(mean)`` (of ``actor``, default the agent's own)."""
+    return agent.mean_actions(observations[:, None], actor)[:, 0]
 
 
 def host_deploy_actions(agent: SACAgent) -> Callable[[torch.Tensor], torch.Tensor]:
     """:func:`deploy_actions` of the agent as it is now, on a CPU copy of its actor."""
     actor = agent.actor_copy("cpu")
-    return lambda observations: agent.mean_actions(observations[:, None], actor)[:, 0]
+    return lambda observations: deploy_actions(agent, observations, actor)
 
 
 class SACActing:

@@ -32,11 +32,10 @@ from pathlib import Path
 
 import torch
 
+from baselines.algorithms import get_algorithm
+from baselines.run_folder import training_progress
 from offdyn_bench.datasets.ensure import ensure_dataset
 from offdyn_bench.protocol import official_dataset
-
-GRAPHED = {"cql", "sac-source", "sac-target"}
-"""Methods with the CUDA-graph update (``cuda_graph=true``), as the lease's sweep runs them."""
 
 
 def _round(args: argparse.Namespace, way: str, folder: Path) -> dict:
@@ -47,7 +46,8 @@ def _round(args: argparse.Namespace, way: str, folder: Path) -> dict:
                    "--eval-episodes", str(args.eval_episodes), "--n-seeds", str(args.seeds),
                    "--seed", str(index * args.seeds), "--threads", "1", "--device", args.device,
                    "--no-progress", "--out", str(folder / f"run-{index}")]
-        if args.device != "cpu" and args.method in GRAPHED:
+        # the CUDA-graph update where the method has one, as the lease's sweep runs it
+        if args.device != "cpu" and hasattr(get_algorithm(args.method).default_config(), "cuda_graph"):
             command += ["--set", "cuda_graph=true"]
         if way == "device":
             command.append("--eval-on-device")
@@ -60,10 +60,9 @@ def _round(args: argparse.Namespace, way: str, folder: Path) -> dict:
     if failures:
         command, stderr = failures[0]
         sys.exit(f"error: a {way} run failed: {' '.join(command)}\n{stderr[-2000:]}")
-    lines = [[json.loads(line) for line in (folder / f"run-{i}" / "metrics.jsonl").read_text().splitlines()]
-             for i in range(args.runs)]
-    evaluation_share = statistics.mean(sum(line["evaluation_wall_time_s"] for line in run) / run[-1]["wall_time_s"]
-                                       for run in lines)
+    runs = [folder / f"run-{i}" for i in range(args.runs)]
+    lines = [[json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()] for run in runs]
+    evaluation_share = statistics.mean(training_progress(run).evaluation_share for run in runs)
     return {"way": way, "wall_s": round(wall_s, 2),
             "seed_steps_per_s": round(args.runs * args.seeds * args.steps / wall_s, 1),
             "evaluation_share": round(evaluation_share, 3),
@@ -89,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.device == "cpu" and "device" in args.ways:
         parser.error("--device cpu: a CPU run evaluates on the CPU already; use --ways host to check the script")
-    dataset = official_dataset(args.task, "offline-target")
+    dataset = official_dataset(args.task, "offline-target") if get_algorithm(args.method).needs_dataset else None
     if dataset is not None:  # installed (or verified) once, not by every process at once
         ensure_dataset(dataset, progress=False, echo=lambda line: print(line, file=sys.stderr))
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
