@@ -56,6 +56,18 @@ def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_
     assert f", {tmp_path / 'device-sweep'} " in travels  # the folder to carry, not the one it was built in
 
 
+@pytest.mark.parametrize("method", ["cql", "sac-target", "darc"])
+def test_a_cuda_sweep_replays_the_graph_update_for_exactly_the_methods_whose_config_has_it(method, tmp_path):
+    from baselines.algorithms import get_algorithm
+
+    prepared = _script("--prepare", method, "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cuda")
+    assert prepared.returncode == 0, prepared.stderr
+    spec = (tmp_path / "device-sweep" / "spec.yaml").read_text()
+    has_graph = hasattr(get_algorithm(method).default_config(), "cuda_graph")
+    assert has_graph == (method != "darc")  # the premise: DARC has no graph update
+    assert (f'overrides: {{{method}: {{cuda_graph: "true"}}}}' in spec) == has_graph, spec
+
+
 @pytest.mark.slow
 def test_a_prepared_sweep_runs_and_comes_back_as_one_archive_without_checkpoints(tmp_path):
     prepared = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu")
