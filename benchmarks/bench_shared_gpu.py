@@ -1,19 +1,23 @@
 """Several training runs sharing one GPU, as a lease's reference sweep runs them: their evaluations
 acting from a CPU copy of the policy (the default) against acting on the GPU (``--eval-on-device``),
-side by side.
+side by side; and, as a third way, the same seeds all in one process.
 
 Each round starts ``--runs`` processes at once (``offdyn-bench train``, ``--seeds`` seeds each, one
 torch thread, the CUDA-graph update where the method has one) and times them until the last one
-ends; rounds alternate between the two ways of evaluating. Per way: seed-steps per second of the
-whole round (``runs x seeds x steps / wall``), and the share of the runs' time their evaluations
-took (``evaluation_wall_time_s`` over ``wall_time_s`` of ``metrics.jsonl``). The ratio is host over
-device per pair of rounds, median over pairs. ``same_updates`` says whether each host run's losses
-equal its device partner's at every evaluation (they must: where the policy acts in an evaluation
-changes no update).
+ends; rounds alternate between the ways. ``host``: evaluations from a CPU copy of the policy;
+``device``: ``--eval-on-device``; ``batched``: one process training all ``runs x seeds`` seeds in
+one batch (one graph), host evaluations. ``batched`` stands in for training several tasks of one
+robot in one process (the same update work; only the data each seed samples would differ), which
+the suite does not do: it measures whether that would pay before it is built. Per way: seed-steps
+per second of the whole round (``runs x seeds x steps / wall``), and the share of the runs' time
+their evaluations took (``evaluation_wall_time_s`` over ``wall_time_s`` of ``metrics.jsonl``).
+Ratios (host over device, batched over host) are per round, median over rounds. ``same_updates``
+says whether each host run's losses equal its device partner's at every evaluation (they must:
+where the policy acts in an evaluation changes no update).
 
 HalfCheetah by default: its episodes never end early, so an evaluation's length does not depend on
 how well the policy has learnt. Without a CUDA device it says so and measures nothing (exit status
-0), unless ``--device cpu --ways host`` asks for a check of the script itself.
+0), unless ``--device cpu --ways host batched`` asks for a check of the script itself.
 
     python benchmarks/bench_shared_gpu.py --runs 4 --steps 2000 --rounds 1 --json out.json
 """
@@ -40,10 +44,12 @@ from offdyn_bench.protocol import official_dataset
 
 def _round(args: argparse.Namespace, way: str, folder: Path) -> dict:
     commands = []
-    for index in range(args.runs):
+    # batched: one process with every seed; otherwise one process per run
+    processes_seeds = [args.runs * args.seeds] if way == "batched" else [args.seeds] * args.runs
+    for index, n_seeds in enumerate(processes_seeds):
         command = [sys.executable, "-m", "offdyn_bench", "train", args.method, "--task", args.task,
                    "--steps", str(args.steps), "--eval-every", str(args.eval_every),
-                   "--eval-episodes", str(args.eval_episodes), "--n-seeds", str(args.seeds),
+                   "--eval-episodes", str(args.eval_episodes), "--n-seeds", str(n_seeds),
                    "--seed", str(index * args.seeds), "--threads", "1", "--device", args.device,
                    "--no-progress", "--out", str(folder / f"run-{index}")]
         # the CUDA-graph update where the method has one, as the lease's sweep runs it
@@ -60,7 +66,7 @@ def _round(args: argparse.Namespace, way: str, folder: Path) -> dict:
     if failures:
         command, stderr = failures[0]
         sys.exit(f"error: a {way} run failed: {' '.join(command)}\n{stderr[-2000:]}")
-    runs = [folder / f"run-{i}" for i in range(args.runs)]
+    runs = [folder / f"run-{i}" for i in range(len(processes_seeds))]
     lines = [[json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()] for run in runs]
     evaluation_share = statistics.mean(training_progress(run).evaluation_share for run in runs)
     return {"way": way, "wall_s": round(wall_s, 2),
@@ -78,16 +84,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--eval-every", type=int, default=1000)
     parser.add_argument("--eval-episodes", type=int, default=2)
-    parser.add_argument("--rounds", type=int, default=1, help="pairs of rounds (host, then device)")
+    parser.add_argument("--rounds", type=int, default=1, help="rounds of each way (the ways alternate)")
     parser.add_argument("--device", default="cuda")
-    parser.add_argument("--ways", nargs="+", choices=["host", "device"], default=["host", "device"])
+    parser.add_argument("--ways", nargs="+", choices=["host", "device", "batched"], default=["host", "device", "batched"])
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args(argv)
     if args.device != "cpu" and not torch.cuda.is_available():
         print(f"no CUDA device visible to torch {torch.__version__}: nothing measured")
         return 0
+    if len(set(args.ways)) != len(args.ways):
+        parser.error(f"--ways {' '.join(args.ways)}: each way once (the ways alternate within a round)")
     if args.device == "cpu" and "device" in args.ways:
-        parser.error("--device cpu: a CPU run evaluates on the CPU already; use --ways host to check the script")
+        parser.error("--device cpu: a CPU run evaluates on the CPU already; use --ways host batched to check the script")
     dataset = official_dataset(args.task, "offline-target") if get_algorithm(args.method).needs_dataset else None
     if dataset is not None:  # installed (or verified) once, not by every process at once
         ensure_dataset(dataset, progress=False, echo=lambda line: print(line, file=sys.stderr))
@@ -105,13 +113,15 @@ def main(argv: list[str] | None = None) -> int:
                      "device": torch.cuda.get_device_name(0) if args.device != "cpu" else "cpu",
                      "torch": torch.__version__, "rounds": [{k: v for k, v in r.items() if k != "losses"}
                                                             for r in rounds]}
-    if args.ways == ["host", "device"]:
-        pairs = list(zip(rounds[0::2], rounds[1::2]))
-        summary["host_over_device"] = statistics.median(host["seed_steps_per_s"] / device["seed_steps_per_s"]
-                                                        for host, device in pairs)
-        summary["same_updates"] = all(host["losses"] == device["losses"] for host, device in pairs)
-        print(f"host evaluation over device evaluation: {summary['host_over_device']:.2f}x seed-steps/s "
-              f"(median of {len(pairs)}); same updates: {summary['same_updates']}")
+    by_way = {way: [r for r in rounds if r["way"] == way] for way in args.ways}
+    for name, (top, bottom) in {"host_over_device": ("host", "device"), "batched_over_host": ("batched", "host")}.items():
+        if top in by_way and bottom in by_way:
+            summary[name] = statistics.median(a["seed_steps_per_s"] / b["seed_steps_per_s"]
+                                              for a, b in zip(by_way[top], by_way[bottom]))
+            print(f"{top} over {bottom}: {summary[name]:.2f}x seed-steps/s (median of {len(by_way[top])})")
+    if "host" in by_way and "device" in by_way:
+        summary["same_updates"] = all(a["losses"] == b["losses"] for a, b in zip(by_way["host"], by_way["device"]))
+        print(f"host and device evaluation made the same updates: {summary['same_updates']}")
     if args.json:
         args.json.write_text(json.dumps(summary, indent=1) + "\n")
     return 0

@@ -55,7 +55,7 @@ python3 -c "import torch, mujoco, offdyn_bench, baselines; print('torch', torch.
 
 want tests && echo "== CUDA tests" && timeout 180 python3 -m pytest -q -p no:cacheprovider tests/baselines/test_baselines_device.py 2>&1 | tee "$out/pytest-device.log" | tail -15
 
-want shared && echo "== four CQL runs sharing the GPU: evaluations from a CPU copy of the policy vs on the GPU" &&
+want shared && echo "== four CQL runs sharing the GPU: evaluations from a CPU copy of the policy vs on the GPU, vs all 20 seeds in one process" &&
 timeout 300 python3 benchmarks/bench_shared_gpu.py --runs 4 --steps 2000 --rounds 1 --task "$methods_task" \
   --json "$out/bench-shared-gpu.json" 2>&1 | grep -v -e Warning -e installed
 
