@@ -73,6 +73,10 @@ class Coverage:
     others: tuple[tuple[Path, str], ...]
     """Published records at a spec run's place that are another run, with what differs."""
     costs: tuple[MethodCost, ...]
+    skippable: frozenset[str] = frozenset()
+    """Run ids (``Run.run_id``) a sweep of the spec can skip (``sweep --skip-published``): every
+    seed result of the run is published as that run, and where other runs of the spec score the
+    policy it trains, theirs are too (a missing one still needs it trained)."""
 
     @property
     def rows(self) -> tuple[Row, ...]:
@@ -102,6 +106,7 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     published: dict[tuple[str, str, str | None], list[int]] = {}
     others: dict[Path, str] = {}
     missing: list[Run] = []
+    complete_ids: set[str] = set()
     read: dict[tuple[str, str, str | None], dict[tuple[int, str], tuple[Path, dict[str, Any]]]] = {}
     for run in runs:
         key = (run.method, run.task, run.dataset_tag)
@@ -120,6 +125,12 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
                 complete = False
         if not complete:
             missing.append(run)
+        else:
+            complete_ids.add(run.run_id)
+    # A training that a missing run scores is needed, published or not.
+    needed_trainings = {run.training_folder for run in missing}
+    skippable = frozenset(run.run_id for run in runs
+                          if run.run_id in complete_ids and run.folder not in needed_trainings)
     counted = _published_training_cpu(budget_dir, spec.seeds_per_run) if spec.device == "cpu" else {}
     costs = []
     for method in spec.methods:
@@ -137,7 +148,7 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     return Coverage(spec.source, spec.budget, budget_dir, tuple(spec.methods),
                     {key: tuple(sorted(seeds)) for key, seeds in wanted.items()},
                     {key: tuple(sorted(published.get(key, ()))) for key in wanted},
-                    tuple(sorted(others.items())), tuple(costs))
+                    tuple(sorted(others.items())), tuple(costs), skippable)
 
 
 def _sides(run: Run) -> tuple[str, ...]:

@@ -39,6 +39,14 @@ def sweep_command(
         help="Start no run or retry after this long (90m, 2h, 1h30m): the runs in flight finish, the rest stay "
              "pending, and the sweep exits with code 3; run it again to continue. For an allocation or a lease "
              "that ends: leave it the longest run's time.")] = None,
+    skip_published: Annotated[bool, typer.Option(
+        "--skip-published",
+        help="Leave out the runs whose records are published already in the reference runs (as "
+             "`leaderboard coverage` counts them): fill in a reference grid with only what is missing. Give it "
+             "to --status and --dry-run too.")] = False,
+    reference_runs: Annotated[Path | None, typer.Option(
+        "--reference-runs", help="The published runs --skip-published reads (default: the repository's "
+                                 "leaderboard/reference-runs).")] = None,
 ) -> None:
     """Run a sweep of training runs and their evaluations (resumable: run it again to continue)."""
     import shlex
@@ -51,13 +59,23 @@ def sweep_command(
 
         limit = parse_duration(start_before) if start_before is not None else None
         spec = load_spec(spec_path, out=out)
+        if reference_runs is not None and not skip_published:
+            raise OffdynError("--reference-runs says where --skip-published looks for published runs; give "
+                              "--skip-published too, or drop --reference-runs")
+        skip: frozenset[str] = frozenset()
+        if skip_published:
+            from leaderboard.coverage import reference_coverage
+            from leaderboard.reference_runs import REFERENCE_RUNS_DIR
+
+            skip = reference_coverage(spec, reference_runs or REFERENCE_RUNS_DIR).skippable
+        again = shlex.quote(str(spec_path)) + (" --skip-published" if skip_published else "")
         if status:
             if dry_run or submit or start_before is not None:
                 raise OffdynError("--status only reads where the sweep stands; it takes no --dry-run, --submit "
                                   "or --start-before")
             from offdyn_bench.sweep.status import read_status, status_lines
 
-            for line in status_lines(read_status(spec), spec_path=shlex.quote(str(spec_path))):
+            for line in status_lines(read_status(spec, skip), spec_path=again):
                 typer.echo(line)
             return
         if dry_run:
@@ -65,17 +83,18 @@ def sweep_command(
 
             runs = expand(spec)
             for run in runs:
-                status = "done" if run_finished(run) else "to run"
+                status = "published: skipped" if run.run_id in skip else "done" if run_finished(run) else "to run"
                 shared = f", scores the policy of {run.shared_training}" if run.shared_training is not None else ""
                 typer.echo(f"{run.run_id} ({status}{shared})")
                 for args in filter(None, (run.train_args, run.evaluate_args, run.source_evaluate_args)):
                     typer.echo("  " + shlex.join(["offdyn-bench", *args]))
-            typer.echo(f"{len(runs)} runs; python: {command_line([])[0]}")
+            published = f" ({len(skip)} published: skipped)" if skip else ""
+            typer.echo(f"{len(runs)} runs{published}; python: {command_line([])[0]}")
             return
         from offdyn_bench.sweep.driver import run_sweep, summary_lines
 
         report = run_sweep(spec, backend=backend, workers=workers, echo=None if quiet else _progress_echo,
-                           submit=submit, description=description, start_before=limit)
+                           submit=submit, description=description, start_before=limit, skip=skip)
     for line in summary_lines(report):
         typer.echo(line)
     if report.failed:

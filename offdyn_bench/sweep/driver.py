@@ -22,7 +22,7 @@ import os
 import re
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
@@ -133,6 +133,8 @@ class SweepReport:
 
     start_before: float | None = None
     """The ``--start-before`` limit in seconds (None: none)."""
+    skipped: tuple[str, ...] = ()
+    """Run ids of the spec left out as published already (``--skip-published``)."""
 
     @property
     def failed(self) -> list[Run]:
@@ -376,12 +378,17 @@ def make_backend(name: str, spec: SweepSpec, workers: int | None) -> Backend:
 
 
 def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = None, echo: Echo | None = print,
-              submit: bool = False, description: str = "", start_before: float | None = None) -> SweepReport:
+              submit: bool = False, description: str = "", start_before: float | None = None,
+              skip: Collection[str] = ()) -> SweepReport:
     """Run every run of ``spec`` that is not finished; return the report (failed runs included).
 
     ``start_before``: seconds after which no run (or retry) starts; the runs in flight finish and
     the rest stay pending (:attr:`SweepReport.not_started`), for a sweep that must end inside an
-    allocation or a lease. Run the sweep again to continue."""
+    allocation or a lease. Run the sweep again to continue.
+
+    ``skip``: run ids left out altogether (``--skip-published``: those whose records are published
+    already, :func:`leaderboard.coverage.reference_coverage`). A method with skipped runs gets no
+    merged submission folder: its results are the published records plus this sweep's."""
     began, began_wall = time.monotonic(), time.time()
     if start_before is not None and not (math.isfinite(start_before) and start_before > 0):
         raise OffdynError(f"--start-before {start_before!r}: expected a duration above 0 seconds")
@@ -389,7 +396,13 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
         raise OffdynError(f"--backend {backend!r}; expected local or ray")
     if workers is not None and workers < 1:
         raise OffdynError(f"--workers {workers}: expected an integer >= 1")
-    runs = expand(spec)  # every refusal before anything is written
+    if submit and skip:
+        raise OffdynError("--submit assembles a method's submission from this sweep's own runs; with "
+                          "--skip-published the published ones are not among them. Publish the finished runs "
+                          "(offdyn-bench leaderboard publish-runs) instead, or drop --skip-published")
+    everything = expand(spec)  # every refusal before anything is written
+    skipped = tuple(run.run_id for run in everything if run.run_id in skip)
+    runs = [run for run in everything if run.run_id not in skip]
     _check_out(spec.out)
     conflicts = [(run, why) for run in runs if (why := settings_conflict(run)) is not None]
     if conflicts:
@@ -434,8 +447,10 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     record.status = "pending"
                     pending.append(run)
             save()
-            skipped = len(runs) - len(pending)
-            say(f"sweep: {len(runs)} runs under {spec.out} ({skipped} already evaluated, {len(pending)} to run)")
+            evaluated = len(runs) - len(pending)
+            published = f", {len(skipped)} published already and skipped" if skipped else ""
+            say(f"sweep: {len(runs)} runs under {spec.out} ({evaluated} already evaluated, {len(pending)} to run"
+                f"{published})")
 
             launched = 0
             if pending:
@@ -531,6 +546,11 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 method_runs = [run for run in runs if run.method == method]
                 if any(records[run.run_id].status != "done" for run in method_runs):
                     continue
+                left_out = sum(run_id.split("/", 1)[0] == method for run_id in skipped)
+                if left_out:
+                    submissions[method] = [f"{left_out} of its runs were skipped as published (--skip-published); "
+                                           "its results are the published records and this sweep's"]
+                    continue
                 if len({run.dataset_tag for run in method_runs}) > 1:
                     # Merging a task's runs would pool datasets; their records are published run by run.
                     submissions[method] = [(f"it trains on {len(spec.datasets)} target dataset qualities per task "
@@ -543,7 +563,8 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 if submit and not submissions[method]:
                     submitted[method] = submit_method(spec, method, description)
             return SweepReport(spec=spec, runs=runs, records=records, launched=launched, submissions=submissions,
-                               submitted=submitted, state_path=state_path, start_before=start_before)
+                               submitted=submitted, state_path=state_path, start_before=start_before,
+                               skipped=skipped)
     finally:
         if engine is not None:
             engine.close()
@@ -586,6 +607,9 @@ def summary_lines(report: SweepReport) -> list[str]:
     total_cpu = sum(report.records[run.run_id].cpu_time_s for run in report.runs)
     lines.append(f"{done}/{len(report.runs)} runs done, {len(report.failed)} failed; compute over all attempts: "
                  f"{format_duration(total_wall)} wall, {format_duration(total_cpu)} CPU; state: {report.state_path}")
+    if report.skipped:
+        lines.append(f"skipped: {len(report.skipped)} run(s) of the spec whose records are published already "
+                     "(--skip-published)")
     lines += failure_lines(report.runs, report.records)
     if report.not_started:
         lines.append(f"left pending: {len(report.not_started)} run(s), not started (or not retried) as "

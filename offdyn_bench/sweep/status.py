@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import time
+from collections.abc import Collection
 from typing import Any
 
 from baselines.run_folder import TrainingProgress, training_progress
@@ -61,9 +62,10 @@ class SweepStatus:
                 if progress is not None and progress.evaluation_share is not None}
 
 
-def read_status(spec: SweepSpec) -> SweepStatus:
-    """Read the sweep of ``spec`` from its output folder (an empty one: every run pending)."""
-    runs = expand(spec)
+def read_status(spec: SweepSpec, skip: Collection[str] = ()) -> SweepStatus:
+    """Read the sweep of ``spec`` from its output folder (an empty one: every run pending), leaving
+    out the runs ``skip`` names (``--skip-published``, as the sweep itself does)."""
+    runs = [run for run in expand(spec) if run.run_id not in skip]
     check_out_is_folder(spec.out)
     state = read_state(spec.out / STATE_FILE)
     stored = state.get("runs") if isinstance(state.get("runs"), dict) else {}

@@ -180,3 +180,29 @@ def test_seeds_count_whichever_seeds_their_run_trained_beside(tmp_path):
     assert cost.unpriced_because == "the spec trains on cuda, and the published compute is CPU time"
     on_cpu = reference_coverage(spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"]), root)
     assert on_cpu.costs[0].trainings_counted >= 5 and on_cpu.costs[0].cpu_to_go_s is not None  # every published DAP run
+
+
+def test_skippable_runs_are_the_published_ones_less_a_training_a_missing_run_still_scores(tmp_path):
+    root = copy_published(tmp_path, "dap", "sac-source")
+    spec = spec_of(tmp_path, methods=["dap", "sac-source"], tasks=HOPPER_TASKS)
+    every = {f"{method}/{task}/seed-{seed}" for method in ("dap", "sac-source") for task in HOPPER_TASKS
+             for seed in range(5)}
+    assert reference_coverage(spec, root).skippable == every  # the premise: all of them are published
+
+    # DAP's seed 1 on hopper-friction-0.5 gone: that run is to do again, every other DAP run is not.
+    shutil.rmtree(root / "lite" / "dap" / "hopper-friction-0.5" / "seed-1")
+    # RL on source's seed 3: both Hopper tasks score one policy, trained in the first task's run.
+    # The second task's record gone: its run needs that policy, so the published first run is
+    # trained again rather than skipped (published records carry no checkpoint to score).
+    shutil.rmtree(root / "lite" / "sac-source" / "hopper-friction-0.5" / "seed-3")
+    skippable = reference_coverage(spec, root).skippable
+    assert every - skippable == {"dap/hopper-friction-0.5/seed-1", "sac-source/hopper-friction-0.5/seed-3",
+                                 "sac-source/hopper-gravity-0.5/seed-3"}
+
+    # The other way round: the training run's record gone, the scoring run's published. The
+    # scoring run is skipped; the training one runs.
+    root = copy_published(tmp_path / "again", "sac-source")
+    shutil.rmtree(root / "lite" / "sac-source" / "hopper-gravity-0.5" / "seed-3")
+    skippable = reference_coverage(spec_of(tmp_path, methods=["sac-source"], tasks=HOPPER_TASKS), root).skippable
+    assert "sac-source/hopper-friction-0.5/seed-3" in skippable
+    assert "sac-source/hopper-gravity-0.5/seed-3" not in skippable
