@@ -548,8 +548,8 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     continue
                 left_out = sum(run_id.split("/", 1)[0] == method for run_id in skipped)
                 if left_out:
-                    submissions[method] = [f"{left_out} of its runs were skipped as published (--skip-published); "
-                                           "its results are the published records and this sweep's"]
+                    submissions[method] = [(f"{left_out} of its runs were skipped as published (--skip-published); "
+                                            "its results are the published records and this sweep's")]
                     continue
                 if len({run.dataset_tag for run in method_runs}) > 1:
                     # Merging a task's runs would pool datasets; their records are published run by run.
