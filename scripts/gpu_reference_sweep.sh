@@ -80,6 +80,15 @@ $overrides
 EOF
   # The device parses the spec with the same code: an unknown method or setting fails here, now.
   .venv/bin/offdyn-bench sweep "$dir/spec.yaml" --dry-run --out "$dir/dry-run" > /dev/null || exit 2
+  if [ "$budget" = lite ]; then
+    # A lease is too short to spend on a run whose records are published already.
+    published=$(.venv/bin/offdyn-bench sweep "$dir/spec.yaml" --dry-run --skip-published --out "$dir/dry-run" \
+      2>/dev/null | sed -n 's|^\([^ ]*\) (published: skipped.*|\1|p')
+    if [ -n "$published" ]; then
+      echo "error: published already (leaderboard/reference-runs/lite), leave out their tasks:" $published >&2
+      exit 2
+    fi
+  fi
   rm -rf "$dir/dry-run"
   echo "$#" > "$dir/workers"
   if [ "$method/$budget" = cql/lite ] && [ $# -gt 2 ]; then

@@ -34,6 +34,10 @@ def _script(*args: str, tmp_path: Path, **env: str) -> subprocess.CompletedProce
     (["--prepare", "cql", "lite", "hopper-gravity-9"], "error: unknown task 'hopper-gravity-9'; closest valid names"),
     (["--prepare", "cq1", "lite", "hopper-gravity-0.5"], "methods: unknown algorithm 'cq1'; closest valid names: 'cql'"),
     (["--prepare", "cql", "0", "hopper-gravity-0.5"], "steps: got 0; expected an integer >= 1"),
+    # RL on target's lite records of this task are in leaderboard/reference-runs: no lease time for them
+    (["--prepare", "sac-target", "lite", "hopper-friction-0.5", "hopper-gravity-0.5"],
+     "error: published already (leaderboard/reference-runs/lite), leave out their tasks: "
+     "sac-target/hopper-friction-0.5/seeds-0-4 sac-target/hopper-gravity-0.5/seeds-0-4"),
 ])
 def test_a_bad_prepare_says_what_was_wrong_and_leaves_no_folder(args, message, tmp_path):
     result = _script(*args, tmp_path=tmp_path)
