@@ -401,7 +401,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                           "--skip-published the published ones are not among them. Publish the finished runs "
                           "(offdyn-bench leaderboard publish-runs) instead, or drop --skip-published")
     everything = expand(spec)  # every refusal before anything is written
-    skipped = tuple(run.run_id for run in everything if run.run_id in skip)
+    skipped = [run for run in everything if run.run_id in skip]
     runs = [run for run in everything if run.run_id not in skip]
     _check_out(spec.out)
     conflicts = [(run, why) for run in runs if (why := settings_conflict(run)) is not None]
@@ -546,7 +546,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                 method_runs = [run for run in runs if run.method == method]
                 if any(records[run.run_id].status != "done" for run in method_runs):
                     continue
-                left_out = sum(run_id.split("/", 1)[0] == method for run_id in skipped)
+                left_out = sum(run.method == method for run in skipped)
                 if left_out:
                     submissions[method] = [(f"{left_out} of its runs were skipped as published (--skip-published); "
                                             "its results are the published records and this sweep's")]
@@ -564,7 +564,7 @@ def run_sweep(spec: SweepSpec, *, backend: str = "local", workers: int | None = 
                     submitted[method] = submit_method(spec, method, description)
             return SweepReport(spec=spec, runs=runs, records=records, launched=launched, submissions=submissions,
                                submitted=submitted, state_path=state_path, start_before=start_before,
-                               skipped=skipped)
+                               skipped=tuple(run.run_id for run in skipped))
     finally:
         if engine is not None:
             engine.close()
