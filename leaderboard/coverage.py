@@ -18,6 +18,7 @@ listed, not counted. A hand-edited record is refused, as everywhere the publishe
 from __future__ import annotations
 
 import dataclasses
+import shlex
 import statistics
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -258,6 +259,7 @@ def coverage_lines(coverage: Coverage) -> list[str]:
                             f"= {format_duration(cost.cpu_to_go_s or 0.0)}")
             lines.append(f"  {cost.method}: {cost.seeds_to_go} seed result(s), {cost.trainings_to_go} training(s) "
                          f"{estimate}")
+        lines.append(f"run only those: offdyn-bench sweep {shlex.quote(coverage.spec_source)} --skip-published")
     if coverage.others:
         lines.append(f"{len(coverage.others)} published record(s) where the spec's runs belong are other runs "
                      "(not counted):")

@@ -133,9 +133,10 @@ def test_a_method_without_a_counted_training_is_not_priced(tmp_path):
     coverage = reference_coverage(spec, root)
     assert coverage.costs[0].cpu_to_go_s is None
     lines = coverage_lines(coverage)
-    assert lines[-2] == ("to go: 2 seed result(s), 2 training(s), CPU not estimated (each method's median training CPU "
+    assert lines[-1] == "run only those: offdyn-bench sweep 'test spec' --skip-published"
+    assert lines[-3] == ("to go: 2 seed result(s), 2 training(s), CPU not estimated (each method's median training CPU "
                          "at this budget, from compute.json):")
-    assert lines[-1] == ("  dap: 2 seed result(s), 2 training(s) not estimated: no published training of it "
+    assert lines[-2] == ("  dap: 2 seed result(s), 2 training(s) not estimated: no published training of it "
                          "(1 seed(s) per run) counted its compute")
     (root / "lite" / "compute.json").write_text("[1, 2]")
     with pytest.raises(SubmissionError, match=r"compute.json: unreadable .*; move it away to record compute anew"):
