@@ -11,14 +11,17 @@
 # one, so a rebuild there would not match the manifest's sha256). What travels must stay under
 # 64 MiB: the wheels take about 26 MB, a task's dataset about 3 MB packed. Processes on one GPU take
 # turns, so more tasks do not finish sooner: the lease measured (evaluations on the GPU) would have
-# finished about two lite CQL tasks (README, Devices); a run unfinished at its end starts over.
+# finished about two lite CQL tasks (README, Devices). RESUME_FROM=<files_at of a lease's last call>
+# adds the runs that lease cut short (its partial.*.tar files, checked against the spec), which the
+# sweep there resumes from their checkpoints; each takes about 15 MB of the 64 MiB for 5 CQL seeds.
 #
 # There, the sweep (local backend, one worker per task) starts in its own process session, so it
 # outlives the call; a second call made at once (before the machine's idle release) finds it and
 # only waits. Each call returns when the sweep ends or after WAIT_S seconds (default 540), with
 # the finished runs, checkpoints left out, in $OUT/sweep.tar.xz, the sweep's log, its status table
 # (each run's steps and the share of its time its evaluations took) and the GPU's load, sampled once
-# a minute ($OUT/gpu.log). Then here:
+# a minute ($OUT/gpu.log); and each unfinished run with its newest checkpoint, most advanced first,
+# as far as what a call brings back allows ($OUT/partial.<method>.<task>.<seeds>.tar). Then here:
 #
 #   mkdir -p runs && tar -xJf <files_at>/sweep.tar.xz -C runs
 #   offdyn-bench leaderboard publish-runs runs/gpu-reference
@@ -34,6 +37,7 @@ if [ "${1:-}" = "--prepare" ]; then
   fi
   method=$2 budget=$3
   shift 3
+  n_tasks=$#
   case $budget in
     lite) budget_line="budget: lite" ;;
     *[!0-9]*|"") echo "error: budget $budget: expected lite or a number of steps" >&2; exit 2 ;;
@@ -90,10 +94,18 @@ EOF
     fi
   fi
   rm -rf "$dir/dry-run"
-  echo "$#" > "$dir/workers"
-  if [ "$method/$budget" = cql/lite ] && [ $# -gt 2 ]; then
+  if [ -n "${RESUME_FROM:-}" ]; then
+    # Runs an earlier lease cut short (its partial.*.tar files) resume here from their checkpoints.
+    archives=("$RESUME_FROM"/partial.*.tar)
+    [ -f "${archives[0]}" ] || { echo "error: RESUME_FROM=$RESUME_FROM holds no partial.*.tar (what a lease call brings back)" >&2; exit 2; }
+    .venv/bin/python scripts/pack_unfinished_runs.py --check "$dir/spec.yaml" "${archives[@]}" || exit 2
+    mkdir -p "$dir/partial" && cp "${archives[@]}" "$dir/partial/"
+    echo "resumes: $(basename -a "${archives[@]}" | tr '\n' ' ')"
+  fi
+  echo "$n_tasks" > "$dir/workers"
+  if [ "$method/$budget" = cql/lite ] && [ "$n_tasks" -gt 2 ]; then
     # Measured on an H200: four lite CQL tasks at once stood at 25-45% after 9 minutes.
-    echo "note: $# lite CQL tasks: the measured lease would finish about two (README, Devices); the rest start over next time" >&2
+    echo "note: $n_tasks lite CQL tasks: the measured lease would finish about two (README, Devices); the rest come back unfinished" >&2
   fi
   # One xz archive: the datasets shrink about 3x, so more tasks fit in what a call carries.
   tar -cJf "$dir/payload.tar.xz" -C "$dir" wheels datasets && rm -rf "$dir/wheels" "$dir/datasets"
@@ -128,6 +140,13 @@ if [ -f "$pid_file" ] && kill -0 "$(cat "$pid_file")" 2>/dev/null; then
 else
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null
   python3 -c "import torch, mujoco; print('torch', torch.__version__, 'mujoco', mujoco.__version__)" || exit 1
+  for archive in "$dir"/partial/*.tar; do
+    [ -f "$archive" ] || continue
+    # A run an earlier lease cut short, unless this machine has it already (a later call).
+    run=$(tar -tf "$archive" | awk -F/ '$4 != "" {print $1 "/" $2 "/" $3 "/" $4; exit}')
+    [ -d "$sweep_root/gpu-reference/$run" ] || { mkdir -p "$sweep_root/gpu-reference" \
+      && tar -xf "$archive" -C "$sweep_root/gpu-reference" && echo "resuming $run from the archive"; }
+  done
   # A sweep resumes its unfinished runs from their checkpoints, so starting again is safe.
   setsid nohup python3 -m offdyn_bench sweep "$dir/spec.yaml" --workers "$(cat "$dir/workers")" \
     >> "$sweep_root/sweep.log" 2>&1 < /dev/null &
@@ -155,4 +174,11 @@ python3 -m offdyn_bench sweep "$dir/spec.yaml" --status 2>&1 | grep -v Warning
 [ -s "$sweep_root/gpu.log" ] && tail -4 "$sweep_root/gpu.log" && cp "$sweep_root/gpu.log" "$out/gpu.log"
 cp "$sweep_root/sweep.log" "$out/sweep.log"
 [ -d "$sweep_root/gpu-reference" ] && tar -cJf "$out/sweep.tar.xz" -C "$sweep_root" --exclude=checkpoints gpu-reference
+# Unfinished runs come back too, each with its newest checkpoint, within what a call brings back
+# (8 files of at most 16 MiB, 64 MiB in all): RESUME_FROM=<files_at> --prepare sends them to the next lease.
+if [ -d "$sweep_root/gpu-reference" ]; then
+  files=$(ls -A "$out" | wc -l) bytes=$(du -sb "$out" | cut -f1)
+  python3 scripts/pack_unfinished_runs.py "$sweep_root/gpu-reference" "$out" --max-files $(( 8 - files )) \
+    --max-bytes $(( 63 * 1048576 - bytes ))
+fi
 ls -la "$out"

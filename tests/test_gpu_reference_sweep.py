@@ -7,9 +7,11 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import tarfile
+import time
 from pathlib import Path
 
 import pytest
@@ -36,8 +38,8 @@ def _script(*args: str, tmp_path: Path, **env: str) -> subprocess.CompletedProce
     (["--prepare", "cql", "0", "hopper-gravity-0.5"], "steps: got 0; expected an integer >= 1"),
     # RL on target's lite records of this task are in leaderboard/reference-runs: no lease time for them
     (["--prepare", "sac-target", "lite", "hopper-friction-0.5", "hopper-gravity-0.5"],
-     "error: published already (leaderboard/reference-runs/lite), leave out their tasks: "
-     "sac-target/hopper-friction-0.5/seeds-0-4 sac-target/hopper-gravity-0.5/seeds-0-4"),
+     ("error: published already (leaderboard/reference-runs/lite), leave out their tasks: "
+      "sac-target/hopper-friction-0.5/seeds-0-4 sac-target/hopper-gravity-0.5/seeds-0-4")),
 ])
 def test_a_bad_prepare_says_what_was_wrong_and_leaves_no_folder(args, message, tmp_path):
     result = _script(*args, tmp_path=tmp_path)
@@ -101,3 +103,72 @@ def test_a_prepared_sweep_runs_and_comes_back_as_one_archive_without_checkpoints
     assert all(len(seed["returns"]) == 20 for seed in evaluation["seeds"])  # the protocol's 20 episodes
     assert (tmp_path / "out" / "sweep.log").stat().st_size > 0
     assert re.fullmatch(r"(\d\d:\d\d:\d\d GPU busy, memory: 37 %, 1234 MiB\n)+", (tmp_path / "out" / "gpu.log").read_text())
+    assert not list((tmp_path / "out").glob("partial.*"))  # nothing unfinished to bring back
+
+
+def _partial_of_another_run(tmp_path: Path) -> Path:
+    """An archive of a run cut short that is no run of the lease's spec (RL on source, 300 steps)."""
+    from baselines.train import train
+
+    task = "invertedpendulum-gravity-3.0"
+    train("sac-source", task, steps=300, out=tmp_path / "other" / "runs" / "sac-source" / task / "seed-0",
+          checkpoint_every=100, eval_every=100, eval_episodes=1, progress=False, stop_after=100,
+          overrides={"sac.hidden_sizes": "[32, 32]", "sac.batch_size": "32", "random_steps": "40"})
+    subprocess.run([sys.executable, str(REPO / "scripts" / "pack_unfinished_runs.py"), str(tmp_path / "other"),
+                    str(tmp_path / "back")], check=True, capture_output=True)
+    return tmp_path / "back"
+
+
+def test_resuming_what_a_lease_did_not_finish_refuses_what_is_not_the_specs(tmp_path):
+    (tmp_path / "empty").mkdir()
+    nothing = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu",
+                      RESUME_FROM=str(tmp_path / "empty"))
+    assert nothing.returncode == 2 and "holds no partial.*.tar (what a lease call brings back)" in nothing.stderr
+    other = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu",
+                    RESUME_FROM=str(_partial_of_another_run(tmp_path)))
+    assert other.returncode == 2
+    assert ("error: partial.sac-source.invertedpendulum-gravity-3.0.seed-0.tar holds "
+            "sac-source/invertedpendulum-gravity-3.0/seed-0, not a run of ") in other.stderr
+    assert not any(tmp_path.glob("device-sweep*"))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="freezes the sweep with SIGSTOP")
+def test_a_run_the_lease_cut_short_comes_back_and_the_next_lease_resumes_it(tmp_path):
+    first, second = tmp_path / "lease-1", tmp_path / "lease-2"
+    first.mkdir(), second.mkdir()
+    prepared = _script("--prepare", "cql", "400", "hopper-gravity-0.5", tmp_path=first, DEVICE="cpu")
+    assert prepared.returncode == 0, prepared.stderr
+    started = _script("1", tmp_path=first, OUT=str(first / "out"))  # starts the sweep, returns at once
+    assert "still running" in started.stdout, started.stdout + started.stderr
+    run = first / "sweep-root" / "gpu-reference" / "runs" / "cql" / "hopper-gravity-0.5" / "seeds-0-4"
+    deadline = time.monotonic() + 600
+    while not list((run / "checkpoints").glob("step_*")) and time.monotonic() < deadline:
+        time.sleep(1)
+    # The lease ends here: the sweep frozen, as the machine's end would leave it mid-run.
+    group = int((first / "sweep-root" / "sweep.pid").read_text())
+    os.killpg(group, signal.SIGSTOP)
+    try:
+        ended = _script("0", tmp_path=first, OUT=str(first / "out"))
+    finally:
+        os.killpg(group, signal.SIGKILL)
+    assert ended.returncode == 0, ended.stderr
+    [partial] = (first / "out").glob("partial.*.tar")
+    assert partial.name == "partial.cql.hopper-gravity-0.5.seeds-0-4.tar"
+    assert "packed: cql/hopper-gravity-0.5/seeds-0-4 at step " in ended.stdout
+
+    # The next lease, on a bare machine: the partial travels, and the sweep resumes it.
+    again = _script("--prepare", "cql", "400", "hopper-gravity-0.5", tmp_path=second, DEVICE="cpu",
+                    RESUME_FROM=str(first / "out"))
+    assert again.returncode == 0, again.stderr
+    assert "resumes: partial.cql.hopper-gravity-0.5.seeds-0-4.tar" in again.stdout
+    finished = _script("900", tmp_path=second, OUT=str(second / "out"))
+    assert finished.returncode == 0, finished.stderr
+    assert "resuming runs/cql/hopper-gravity-0.5/seeds-0-4 from the archive" in finished.stdout
+    assert "1/1 runs done, 0 failed" in finished.stdout
+    log = (second / "sweep-root" / "gpu-reference" / "logs").rglob("*.log")
+    assert any("=== resuming: " in path.read_text() for path in log)
+    result = json.loads((second / "sweep-root" / "gpu-reference" / "runs" / "cql" / "hopper-gravity-0.5"
+                         / "seeds-0-4" / "result.json").read_text())
+    assert result["compute"]["attempts"] == 2  # the cut-short lease's attempt is counted
+    assert not list((second / "out").glob("partial.*"))
