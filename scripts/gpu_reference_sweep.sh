@@ -11,7 +11,7 @@
 # one, so a rebuild there would not match the manifest's sha256). What travels must stay under
 # 64 MiB: the wheels take about 26 MB, a task's dataset about 3 MB packed. Processes on one GPU take
 # turns, so more tasks do not finish sooner: the lease measured (evaluations on the GPU) would have
-# finished about two lite CQL tasks (README, Devices). RESUME_FROM=<files_at of a lease's last call>
+# finished about two lite CQL tasks (README, Devices). RESUME_FROM=<a folder of the partial.*.tar a call brought back>
 # adds the runs that lease cut short (its partial.*.tar files, checked against the spec), which the
 # sweep there resumes from their checkpoints; each takes about 15 MB of the 64 MiB for 5 CQL seeds.
 #
