@@ -60,11 +60,11 @@ def pack_run(folder: Path, checkpoint: Path, destination: Path) -> Path | None:
                 return {name for name in names if name != checkpoint.name}
             return set()
 
-        shutil.copytree(folder, staged, ignore=leave_out)
         try:
+            shutil.copytree(folder, staged, ignore=leave_out)
             load_checkpoint(staged / CHECKPOINT_DIR / checkpoint.name)
-        except (DamagedCheckpointError, FileNotFoundError):
-            return None
+        except (shutil.Error, OSError, DamagedCheckpointError):
+            return None  # the sweep replaced or removed it meanwhile
         archive = destination / f"partial.{method}.{task}.{label}.tar"
         with tarfile.open(archive, "w") as tar:
             tar.add(Path(tmp) / RUNS_DIR, arcname=RUNS_DIR)
