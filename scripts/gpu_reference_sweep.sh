@@ -175,7 +175,8 @@ python3 -m offdyn_bench sweep "$dir/spec.yaml" --status 2>&1 | grep -v Warning
 cp "$sweep_root/sweep.log" "$out/sweep.log"
 [ -d "$sweep_root/gpu-reference" ] && tar -cJf "$out/sweep.tar.xz" -C "$sweep_root" --exclude=checkpoints gpu-reference
 # Unfinished runs come back too, each with its newest checkpoint, within what a call brings back
-# (8 files of at most 16 MiB, 64 MiB in all): RESUME_FROM=<files_at> --prepare sends them to the next lease.
+# (8 files of at most 16 MiB, 64 MiB in all): kept in a folder here, RESUME_FROM=<it> --prepare sends them
+# to the next lease.
 if [ -d "$sweep_root/gpu-reference" ]; then
   files=$(ls -A "$out" | wc -l) bytes=$(du -sb "$out" | cut -f1)
   python3 scripts/pack_unfinished_runs.py "$sweep_root/gpu-reference" "$out" --max-files $(( 8 - files )) \
