@@ -82,18 +82,18 @@ device: $device
 max_retries: 1
 $overrides
 EOF
-  # The device parses the spec with the same code: an unknown method or setting fails here, now.
-  .venv/bin/offdyn-bench sweep "$dir/spec.yaml" --dry-run --out "$dir/dry-run" > /dev/null || exit 2
-  if [ "$budget" = lite ]; then
-    # A lease is too short to spend on a run whose records are published already.
-    published=$(.venv/bin/offdyn-bench sweep "$dir/spec.yaml" --dry-run --skip-published --out "$dir/dry-run" \
-      2>/dev/null | sed -n 's|^\([^ ]*\) (published: skipped.*|\1|p')
-    if [ -n "$published" ]; then
-      echo "error: published already (leaderboard/reference-runs/lite), leave out their tasks:" $published >&2
-      exit 2
-    fi
-  fi
+  # The device parses the spec with the same code: an unknown method or setting fails here, now. At
+  # lite the same dry run marks the runs whose records are published already: a lease is too short
+  # to spend on them.
+  skip_published=""
+  [ "$budget" = lite ] && skip_published=--skip-published
+  dry_run=$(.venv/bin/offdyn-bench sweep "$dir/spec.yaml" --dry-run $skip_published --out "$dir/dry-run") || exit 2
   rm -rf "$dir/dry-run"
+  published=$(printf '%s\n' "$dry_run" | sed -n 's|^\([^ ]*\) (published: skipped.*|\1|p')
+  if [ -n "$published" ]; then
+    echo "error: published already (leaderboard/reference-runs/lite), leave out their tasks:" $published >&2
+    exit 2
+  fi
   if [ -n "${RESUME_FROM:-}" ]; then
     # Runs an earlier lease cut short (its partial.*.tar files) resume here from their checkpoints.
     archives=("$RESUME_FROM"/partial.*.tar)
