@@ -19,11 +19,12 @@ ALGORITHM_NAMES = ("sac-source", "sac-target", "cql", "darc", "darc-online", "h2
 
 def train_command(
     algo: str = typer.Argument(..., help="Algorithm: " + ", ".join(ALGORITHM_NAMES) + "."),
-    task: str = typer.Option(..., "--task", help="Task pair, e.g. hopper-gravity-0.5."),
+    task: str | None = typer.Option(None, "--task", help="Task pair, e.g. hopper-gravity-0.5 (required to train)."),
     steps: int | None = typer.Option(None, "--steps", help="Environment steps (gradient updates for cql, dara, "
                                                            "h2o-offline-source); "
                                                            "or pass --budget."),
-    out: Path = typer.Option(..., "--out", help="Run folder; run the same command again to resume it."),
+    out: Path | None = typer.Option(None, "--out", help="Run folder; run the same command again to resume it "
+                                                        "(required to train)."),
     seed: int = typer.Option(0, "--seed", help="First training seed."),
     n_seeds: int = typer.Option(1, "--n-seeds", help="Seeds seed..seed+n-1, trained together in one process."),
     dataset: str | None = typer.Option(None, "--dataset",
@@ -52,6 +53,10 @@ def train_command(
     eval_on_device: bool = typer.Option(False, "--eval-on-device", help="On an accelerator, run the in-training "
                                         "evaluations' policy there too (default: a CPU copy of it, which waits on "
                                         "no device each episode step)."),
+    print_config: bool = typer.Option(False, "--print-config", help="Print the method's settings (its defaults "
+                                      "with the --set overrides applied and checked) as the JSON a run's "
+                                      "config.json records under \"config\", and exit: nothing is trained or "
+                                      "written, and no task or folder is needed."),
 ) -> None:
     """Train a reference baseline and write config.json, metrics.jsonl, result.json and checkpoints."""
     from baselines.train import train
@@ -63,6 +68,16 @@ def train_command(
             typer.echo(f"error: --set expects key=value, got {item!r}", err=True)
             raise typer.Exit(2)
         parsed[key.strip()] = value.strip()
+    if print_config:
+        _print_config(algo, parsed)
+        return
+    missing = [what for what, value in (("--task (the task pair, e.g. hopper-gravity-0.5)", task),
+                                        ("--out (the run folder to write)", out)) if value is None]
+    if missing:
+        typer.echo(f"error: training needs {' and '.join(missing)}; to see the method's settings only, pass "
+                   "--print-config", err=True)
+        raise typer.Exit(2)
+    assert task is not None and out is not None
     try:
         result = train(algo, task, steps=steps, out=out, seed=seed, n_seeds=n_seeds, dataset=dataset,
                        source_dataset=source_dataset,
@@ -74,3 +89,17 @@ def train_command(
         raise typer.Exit(2) from None
     if result is not None:
         typer.echo(f"mean target return {result['mean_return']:.1f}; wrote {out}/result.json")
+
+
+def _print_config(algo: str, overrides: dict[str, str]) -> None:
+    """``--print-config``: the settings a run of ``algo`` with these overrides would record."""
+    import json
+
+    from baselines.algorithms import apply_overrides, config_to_dict, get_algorithm
+
+    try:
+        config = apply_overrides(get_algorithm(algo).default_config(), overrides, algo)
+    except OffdynError as error:
+        typer.echo(f"error: {error}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(json.dumps(config_to_dict(config), indent=2))

@@ -64,10 +64,10 @@ if [ "${1:-}" = "--prepare" ]; then
   done
   device=${DEVICE:-cuda}  # DEVICE=cpu: the same flow checked on a machine without a GPU
   overrides=""
-  # The methods with a graph update are those whose config has cuda_graph (an unknown method has
-  # none here and fails the dry run below, with its own message).
-  if [ "$device" = cuda ] && .venv/bin/python -c "import sys; from baselines.algorithms import get_algorithm
-sys.exit(not hasattr(get_algorithm(sys.argv[1]).default_config(), 'cuda_graph'))" "$method" 2>/dev/null; then
+  # The methods with a graph update are those whose config takes cuda_graph (an unknown method
+  # takes none here and fails the dry run below, with its own message).
+  if [ "$device" = cuda ] && .venv/bin/offdyn-bench train "$method" --print-config --set cuda_graph=true \
+      >/dev/null 2>&1; then
     overrides="overrides: {$method: {cuda_graph: \"true\"}}"
   fi
   cat > "$dir/spec.yaml" <<EOF

@@ -168,6 +168,30 @@ def test_cli_train_and_its_errors(tmp_path):
                               "--set", "nonsense"])
     assert bad.exit_code == 2 and "key=value" in bad.output
     assert not (tmp_path / "x").exists()
+    shown = runner.invoke(app, ["train", "sac-source", "--print-config", "--set", "random_steps=10",
+                                "--set", "sac.hidden_sizes=[16]", "--set", "sac.batch_size=8"])
+    assert shown.exit_code == 0, shown.output
+    assert json.loads(shown.stdout) == json.loads((out / "config.json").read_text())["config"]
+    for missing, args in (("--task", ["--out", str(tmp_path / "x")]), ("--out", ["--task", PENDULUM])):
+        bad = runner.invoke(app, ["train", "dap", "--steps", "30", *args])
+        assert bad.exit_code == 2 and f"training needs {missing} (" in bad.output and "--print-config" in bad.output
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("algo", ["cql", "sac-target", "darc"])
+def test_print_config_says_which_methods_take_a_setting(algo):
+    """What gpu_reference_sweep.sh asks (does this method's config take cuda_graph?) and what a
+    researcher asks (what will this run use?): the checked settings, or the setting's error."""
+    runner = CliRunner()
+    shown = runner.invoke(app, ["train", algo, "--print-config", "--set", "cuda_graph=true"])
+    takes_it = hasattr(get_algorithm(algo).default_config(), "cuda_graph")
+    assert (shown.exit_code == 0) == takes_it, shown.output
+    if takes_it:
+        assert json.loads(shown.stdout)["cuda_graph"] is True
+    else:
+        assert shown.stdout == "" and f"unknown setting of {algo} 'cuda_graph'" in shown.output
+    bad = runner.invoke(app, ["train", algo, "--print-config", "--set", "sac.batch_size=-3"])
+    assert bad.exit_code == 2 and "invalid setting sac.batch_size=-3" in bad.output and bad.stdout == ""
 
 
 def test_python_dash_m_entry_points():
