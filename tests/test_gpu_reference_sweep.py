@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from cut_short_runs import TASK, pack_unfinished, train_tiny_source
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "gpu_reference_sweep.sh"
@@ -108,14 +109,8 @@ def test_a_prepared_sweep_runs_and_comes_back_as_one_archive_without_checkpoints
 
 def _partial_of_another_run(tmp_path: Path) -> Path:
     """An archive of a run cut short that is no run of the lease's spec (RL on source, 300 steps)."""
-    from baselines.train import train
-
-    task = "invertedpendulum-gravity-3.0"
-    train("sac-source", task, steps=300, out=tmp_path / "other" / "runs" / "sac-source" / task / "seed-0",
-          checkpoint_every=100, eval_every=100, eval_episodes=1, progress=False, stop_after=100,
-          overrides={"sac.hidden_sizes": "[32, 32]", "sac.batch_size": "32", "random_steps": "40"})
-    subprocess.run([sys.executable, str(REPO / "scripts" / "pack_unfinished_runs.py"), str(tmp_path / "other"),
-                    str(tmp_path / "back")], check=True, capture_output=True)
+    train_tiny_source(tmp_path / "other" / "runs" / "sac-source" / TASK / "seed-0", stop_after=100)
+    pack_unfinished(tmp_path / "other", tmp_path / "back")
     return tmp_path / "back"
 
 
