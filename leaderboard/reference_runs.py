@@ -14,7 +14,8 @@ Publishing copies the records byte for byte (their sha256 stays the evaluation's
 that score under the protocol: complete, finite, at a protocol budget, in the folder that names
 their method, task, seeds and side. Everything is checked before anything is written, and a
 published record is never replaced by different bytes unless asked: published numbers do not
-change silently.
+change silently. A training seed is published once (per method, task, side and target dataset),
+whichever seed folder it comes in: every reader refuses a seed given twice.
 """
 
 from __future__ import annotations
@@ -145,6 +146,7 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
                                   f"{', '.join(sorted(present)) or 'no method'}")
         folders = [folder for folder in folders if folder.parts[-3] in methods]
     plan: list[tuple[Path, Path, bytes]] = []
+    records: list[tuple[Path, Path, dict[str, Any]]] = []  # (source, destination, record) of each record file
     unfinished = []
     trained: dict[str, TrainingCompute] = {}
     for folder in folders:
@@ -169,8 +171,10 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
                 plan.append((curve_path, dest / str(record["budget"]) / method / task / label / METRICS_FILE,
                              curve_path.read_bytes()))
             plan.append((path, dest / str(record["budget"]) / method / task / label / name, path.read_bytes()))
+            records.append((path, plan[-1][1], record))
     if not plan:
         raise SubmissionError(f"{sweep_out}: no finished run to publish ({len(unfinished)} unfinished)")
+    _refuse_seeds_published_twice(records, dest)
     written, unchanged, reproduced, conflicts = [], [], [], []
     for source, target, data in plan:
         if target.exists():
@@ -202,6 +206,37 @@ def publish_reference_runs(sweep_out: Path, dest: Path = REFERENCE_RUNS_DIR, *, 
         raise SubmissionError(f"{dest}: writing failed ({error.strerror or error}: {error.filename}); every "
                               "file written is complete, and publishing again writes the rest") from None
     return PublishReport(tuple(written), tuple(unchanged), tuple(unfinished), tuple(compute), tuple(reproduced))
+
+
+def _refuse_seeds_published_twice(records: Sequence[tuple[Path, Path, dict[str, Any]]], dest: Path) -> None:
+    """Refuse a record whose training seed is published, or about to be, in another seed folder of
+    the same method, task, side and target dataset (``seed-0`` beside a GPU lease's ``seeds-0-4``):
+    every reader of the published runs counts a seed once and refuses one given twice."""
+    holder: dict[tuple[str, str, str, str, str, int], Path] = {}
+
+    def claim(path: Path, record: dict[str, Any], side: str, source: Path | None = None) -> None:
+        for entry in record["seeds"]:
+            key = (str(record["budget"]), str(record["method"]), str(record["task"]), side, dataset_label(record),
+                   entry["seed"])
+            other = holder.setdefault(key, path)
+            if other.parent != path.parent:
+                where = f"{path}" + (f" (from {source})" if source is not None else "")
+                raise SubmissionError(
+                    f"{where} would publish training seed {entry['seed']} of {record['method']} on "
+                    f"{record['task']} ({side} side, trained on {dataset_label(record)}), which {other} holds "
+                    "already: a seed is published once, or every score would count it twice. Publish the "
+                    "sweep's other runs with --method, or take the older folder out of the published tree "
+                    "(git rm -r) first if this run is to replace it")
+
+    touched = {(target.relative_to(dest).parts[:3]) for _, target, _ in records}
+    for budget, method, task in sorted(touched):
+        budget_dir = dest / budget
+        for path in sorted((budget_dir / method / task).glob("*/evaluation*.json")):
+            if path.name in RECORD_FILES:
+                claim(path, read_published_record(budget_dir, path), RECORD_FILES[path.name])
+    for source, target, record in records:
+        if not target.exists():  # a published one was claimed above, under its own path
+            claim(target, record, RECORD_FILES[target.name], source)
 
 
 # Where a run ran, not what it measured: a record's own command and its training's (both name the

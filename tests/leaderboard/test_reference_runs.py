@@ -5,6 +5,7 @@ them, and publishing refuses what is not a finished protocol evaluation without 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from leaderboard.reference_runs import (
     reference_progress,
 )
 from leaderboard.submission import SubmissionError
+from offdyn_bench.protocol.claims import NO_DATASET
 
 REPO = Path(__file__).resolve().parents[2]
 PUBLISHED = sorted(REFERENCE_RUNS_DIR.glob("*/*/*/*/evaluation*.json"))
@@ -365,6 +367,56 @@ def test_publishing_refuses_a_folder_that_is_not_a_sweep_and_an_absent_method(sw
     with pytest.raises(SubmissionError, match=rf"no runs of dap; it has runs of {present}$"):
         publish_reference_runs(sweep_out, tmp_path / "published", methods=["dap"])
     assert not (tmp_path / "published").exists()
+
+
+def _group_seeds(runs: Path, first: int, last: int, into: Path) -> Path:
+    """The ``seed-N`` records under ``runs`` (one method and task) merged into one
+    ``seeds-first-last`` run folder under ``into``, as a GPU lease trains seeds together."""
+    group = into / f"seeds-{first}-{last}"
+    group.mkdir(parents=True)
+    for name in ("evaluation.json", "evaluation-source.json"):
+        parts = [json.loads((runs / f"seed-{seed}" / name).read_text()) for seed in range(first, last + 1)
+                 if (runs / f"seed-{seed}" / name).exists()]
+        if parts:
+            (group / name).write_text(json.dumps(parts[0] | {"seeds": [e for part in parts for e in part["seeds"]]}))
+    return group
+
+
+def test_a_training_seed_is_published_once_whatever_run_it_came_from(sweep_out, tmp_path):
+    """A lease's seeds-0-4 beside a published seed-0 (or both in one sweep) would put seed 0 in the
+    tree twice, which every score refuses to read: refused before anything is written, with or
+    without --replace. Another target dataset's seed 0 is another cell and goes through."""
+    dest = tmp_path / "published"
+    publish_reference_runs(sweep_out, dest, methods=["sac-target"])
+    before = _tree(dest)
+    runs = sweep_out / "runs" / "sac-target" / "hopper-gravity-0.5"
+    published = dest / "lite" / "sac-target" / "hopper-gravity-0.5"
+    lease = tmp_path / "lease"
+    _group_seeds(runs, 0, 1, lease / "runs" / "sac-target" / "hopper-gravity-0.5")
+    for replace in (False, True):
+        with pytest.raises(SubmissionError, match=(
+                r"seeds-0-1/evaluation.json \(from .*\) would publish training seed 0 of sac-target on "
+                rf"hopper-gravity-0.5 \(target side, trained on {re.escape(NO_DATASET)}\), which "
+                rf"{re.escape(str(published))}/seed-0/evaluation.json holds already: a seed is published once")):
+            publish_reference_runs(lease, dest, replace=replace)
+        assert _tree(dest) == before
+    # Both groupings in one sweep, nothing published yet: refused too.
+    _group_seeds(runs, 0, 1, runs)
+    with pytest.raises(SubmissionError, match=r"would publish training seed 0 of sac-target .* holds already"):
+        publish_reference_runs(sweep_out, tmp_path / "fresh", methods=["sac-target"])
+    assert not (tmp_path / "fresh").exists()
+    # With the older folders taken out of the published tree first, the grouped run publishes.
+    shutil.rmtree(published / "seed-0")
+    shutil.rmtree(published / "seed-1")
+    assert publish_reference_runs(lease, dest).written == (published / "seeds-0-1" / "evaluation.json",)
+    # Seed 2 trained on a target dataset is another cell of the grid than seed 2 trained on none.
+    record = json.loads((runs / "seed-2" / "evaluation.json").read_text())
+    folder = tmp_path / "other-data" / "runs" / "sac-target" / "hopper-gravity-0.5" / "medium-v0.seed-2"
+    folder.mkdir(parents=True)
+    (folder / "evaluation.json").write_text(json.dumps(record | {"dataset": {
+        "dataset_id": "offdyn/hopper-gravity-0p5/medium-v0"}}))
+    assert publish_reference_runs(tmp_path / "other-data", dest).written == (
+        published / "medium-v0.seed-2" / "evaluation.json",)
 
 
 def test_the_command_line_publishes_and_reports(sweep_out, tmp_path):
