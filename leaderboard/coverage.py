@@ -78,6 +78,10 @@ class Coverage:
     """Run ids (``Run.run_id``) a sweep of the spec can skip (``sweep --skip-published``): every
     seed result of the run is published as that run, and where other runs of the spec score the
     policy it trains, theirs are too (a missing one still needs it trained)."""
+    partly_published: Mapping[str, tuple[int, ...]] = dataclasses.field(default_factory=dict)
+    """Run id -> its seeds published already, for the runs of several seeds that have some but not
+    all of them published (a lease's ``seeds-0-4`` where a CPU session published ``seed-0``): such a
+    run could not be published (a seed is published once), so ``sweep --skip-published`` refuses it."""
 
     @property
     def rows(self) -> tuple[Row, ...]:
@@ -107,6 +111,7 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     published: dict[tuple[str, str, str | None], list[int]] = {}
     others: dict[Path, str] = {}
     missing: list[Run] = []
+    partly: dict[str, tuple[int, ...]] = {}
     complete_ids: set[str] = set()
     read: dict[tuple[str, str, str | None], dict[tuple[int, str], tuple[Path, dict[str, Any]]]] = {}
     for run in runs:
@@ -116,16 +121,20 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
             read[key] = _published_records(budget_dir, run)
         records = read[key]
         complete = True
+        seeds_published = []
         for seed in run.seeds:
             found = [records[seed, side] for side in _sides(run) if (seed, side) in records]
             differs = {path: why for path, record in found if (why := _difference(spec, run, record))}
             others.update(differs)
             if len(found) == len(_sides(run)) and not differs:
                 published.setdefault(key, []).append(seed)
+                seeds_published.append(seed)
             else:
                 complete = False
         if not complete:
             missing.append(run)
+            if seeds_published:
+                partly[run.run_id] = tuple(seeds_published)
         else:
             complete_ids.add(run.run_id)
     # A training that a missing run scores is needed, published or not.
@@ -149,7 +158,7 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     return Coverage(spec.source, spec.budget, budget_dir, tuple(spec.methods),
                     {key: tuple(sorted(seeds)) for key, seeds in wanted.items()},
                     {key: tuple(sorted(published.get(key, ()))) for key in wanted},
-                    tuple(sorted(others.items())), tuple(costs), skippable)
+                    tuple(sorted(others.items())), tuple(costs), skippable, partly)
 
 
 def _sides(run: Run) -> tuple[str, ...]:

@@ -6,6 +6,7 @@ backends load when the command runs.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated
 
@@ -67,7 +68,10 @@ def sweep_command(
             from leaderboard.coverage import reference_coverage
             from leaderboard.reference_runs import REFERENCE_RUNS_DIR
 
-            skip = reference_coverage(spec, reference_runs or REFERENCE_RUNS_DIR).skippable
+            coverage = reference_coverage(spec, reference_runs or REFERENCE_RUNS_DIR)
+            skip = coverage.skippable
+            if coverage.partly_published and not status:
+                raise OffdynError(_partly_published_message(coverage.partly_published))
         again = shlex.quote(str(spec_path)) + (" --skip-published" if skip_published else "")
         if status:
             if dry_run or submit or start_before is not None:
@@ -101,6 +105,15 @@ def sweep_command(
         raise typer.Exit(1)
     if report.not_started:
         raise typer.Exit(3)  # unfinished, but nothing wrong: a loop can tell it from done (0) and failed (1)
+
+
+def _partly_published_message(partly: Mapping[str, tuple[int, ...]]) -> str:
+    """Why a sweep with runs whose seeds are partly published is refused, and what to run instead."""
+    named = "; ".join(f"{run_id} (seed(s) {', '.join(map(str, seeds))} published)"
+                      for run_id, seeds in sorted(partly.items()))
+    return (f"{len(partly)} run(s) of the spec train seeds that are published already in other seed folders: "
+            f"{named}. A seed is published once (publish-runs refuses a second), so these runs could not be "
+            "published: give the spec only the unpublished seeds in `seeds`, or `seeds_per_run: 1`")
 
 
 def _progress_echo(line: str) -> None:

@@ -63,6 +63,30 @@ def test_dry_run_and_status_leave_out_exactly_the_published_runs(tmp_path):
     assert plain.exit_code == 0 and "published" not in plain.output and "5 runs;" in plain.output
 
 
+def test_a_run_of_several_seeds_some_published_is_refused_with_what_to_run_instead(tmp_path):
+    """A lease's 5-seed run where single-seed runs published some seeds could not be published (a
+    seed is published once): refused before anything runs, naming the published seeds; the spec
+    with only the others goes through."""
+    task = "hopper-gravity-0.5"
+    root = _published_dap(tmp_path, task, drop_seed=2)
+    spec = _lite_spec(tmp_path, task)
+    grouped = json.loads(spec.read_text()) | {"seeds_per_run": 5}
+    spec.write_text(json.dumps(grouped))
+    flags = ["--skip-published", "--reference-runs", str(root)]
+    for mode in (["--dry-run"], []):
+        refused = runner.invoke(app, ["sweep", str(spec), *mode, *flags])
+        assert refused.exit_code == 2, refused.output
+        assert (f"1 run(s) of the spec train seeds that are published already in other seed folders: "
+                f"dap/{task}/seeds-0-4 (seed(s) 0, 1, 3, 4 published)") in " ".join(refused.output.split())
+        assert "give the spec only the unpublished seeds" in " ".join(refused.output.split())
+    assert not (tmp_path / "out").exists()
+    # --status only reads: it still shows where the sweep stands.
+    assert runner.invoke(app, ["sweep", str(spec), "--status", *flags]).exit_code == 0
+    spec.write_text(json.dumps(grouped | {"seeds": [2]}))
+    dry = runner.invoke(app, ["sweep", str(spec), "--dry-run", *flags])
+    assert dry.exit_code == 0 and f"dap/{task}/seed-2 (to run)" in dry.output, dry.output
+
+
 def test_refusals_say_what_was_wrong_and_write_nothing(tmp_path):
     spec = _lite_spec(tmp_path, "hopper-gravity-0.5")
     alone = runner.invoke(app, ["sweep", str(spec), "--dry-run", "--reference-runs", str(tmp_path)])
