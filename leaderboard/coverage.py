@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from baselines.run_folder import TrainingCompute
-from leaderboard.reference_runs import (REFERENCE_RUNS_DIR, RECORD_FILES, read_published_compute,
+from leaderboard.reference_runs import (REFERENCE_RUNS_DIR, published_record_files, read_published_compute,
                                        read_published_record, require_published_root)
 from leaderboard.submission import SubmissionError
 from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
@@ -170,21 +170,14 @@ def _published_records(budget_dir: Path, run: Run) -> dict[tuple[int, str], tupl
     """(seed, side) -> the published record holding it, among the folders of ``run``'s method,
     task and dataset tag (any seed grouping)."""
     found: dict[tuple[int, str], tuple[Path, dict[str, Any]]] = {}
-    task_dir = budget_dir / run.method / run.task
-    if not task_dir.is_dir():
-        return found
-    for folder in sorted(task_dir.iterdir()):
-        tag, _, _ = folder.name.rpartition(".")
+    for path, side in published_record_files(budget_dir / run.method / run.task):
+        tag, _, _ = path.parent.name.rpartition(".")
         if (tag or None) != run.dataset_tag:
             continue
-        for path in sorted(folder.glob("evaluation*.json")):
-            side = RECORD_FILES.get(path.name)
-            if side is None:
-                continue
-            # A hand edit (a record in another method's folder, a damaged one) is refused outright.
-            record = read_published_record(budget_dir, path)
-            for entry in record["seeds"]:
-                found[(entry["seed"], side)] = (path, record)
+        # A hand edit (a record in another method's folder, a damaged one) is refused outright.
+        record = read_published_record(budget_dir, path)
+        for entry in record["seeds"]:
+            found[(entry["seed"], side)] = (path, record)
     return found
 
 

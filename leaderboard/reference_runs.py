@@ -230,10 +230,8 @@ def _refuse_seeds_published_twice(records: Sequence[tuple[Path, Path, dict[str, 
 
     touched = {(target.relative_to(dest).parts[:3]) for _, target, _ in records}
     for budget, method, task in sorted(touched):
-        budget_dir = dest / budget
-        for path in sorted((budget_dir / method / task).glob("*/evaluation*.json")):
-            if path.name in RECORD_FILES:
-                claim(path, read_published_record(budget_dir, path), RECORD_FILES[path.name])
+        for path, side in published_record_files(dest / budget / method / task):
+            claim(path, read_published_record(dest / budget, path), side)
     for source, target, record in records:
         if not target.exists():  # a published one was claimed above, under its own path
             claim(target, record, RECORD_FILES[target.name], source)
@@ -391,6 +389,13 @@ def _published_budgets(root: Path) -> list[Path]:
     """The budget folders of published reference runs under ``root``, which must be a folder."""
     require_published_root(root)
     return sorted(path for path in root.glob("*") if path.is_dir())
+
+
+def published_record_files(task_dir: Path) -> list[tuple[Path, str]]:
+    """(path, side) of each record file under a published ``<budget>/<method>/<task>`` folder, seed
+    folder by seed folder ([] where the folder does not exist)."""
+    return [(path, RECORD_FILES[path.name]) for path in sorted(task_dir.glob("*/evaluation*.json"))
+            if path.name in RECORD_FILES]
 
 
 def read_published_record(budget_dir: Path, path: Path) -> dict[str, Any]:
