@@ -5,8 +5,8 @@ x the core suite x 5 seeds at ``lite``), published run by run as sweeps finish t
 sessions and machines (:mod:`leaderboard.reference_runs`). ``offdyn-bench leaderboard coverage
 SPEC`` says how far it got: per task (and dataset) and method, how many of the spec's seeds have a
 published record of exactly the spec's run, and for the runs still missing, the trainings they
-need and the CPU those would take at the median of the method's published trainings (their own
-counts, in ``<budget>/compute.json``).
+need and the CPU those would take at the median of the method's published CPU trainings (their
+own counts, in ``<budget>/compute.json``; a GPU training's CPU time is its host thread's).
 
 A run counts as published when the records the sweep would write for it are in the published
 tree (``<budget>/<method>/<task>/<seed label>/``, the sweep's own layout; RL on source's source
@@ -198,16 +198,28 @@ def _difference(spec: SweepSpec, run: Run, record: dict[str, Any]) -> str:
 
 
 def _published_training_cpu(budget_dir: Path, seeds_per_run: int) -> dict[str, list[float]]:
-    """Per method, the CPU seconds of each published training of ``seeds_per_run`` seeds that
+    """Per method, the CPU seconds of each published CPU training of ``seeds_per_run`` seeds that
     counted its compute whole."""
     times: dict[str, list[float]] = {}
     for run_id, entry in sorted(read_published_compute(budget_dir).items()):
         training = TrainingCompute.parse(entry.get("training"))
         label = run_id.rsplit("/", 1)[-1].rpartition(".")[2]
         seeds = 1 if label.startswith("seed-") else _group_size(label)
-        if training is not None and training.complete and seeds == seeds_per_run:
+        if (training is not None and training.complete and seeds == seeds_per_run
+                and not _trained_on_a_gpu(budget_dir, budget_dir / run_id)):
             times.setdefault(run_id.split("/", 1)[0], []).append(training.cpu_time_s)
     return times
+
+
+def _trained_on_a_gpu(budget_dir: Path, run_folder: Path) -> bool:
+    """Whether a published run's records name a GPU among the machines that trained it. Such a
+    run's CPU time is its host thread's (waiting on the device), not what the training costs on a
+    CPU, so it prices no CPU run."""
+    for path in sorted(run_folder.glob("evaluation*.json")):
+        machines = read_published_record(budget_dir, path).get("training_machines") or []
+        if any(isinstance(machine, dict) and machine.get("cuda") for machine in machines):
+            return True
+    return False
 
 
 def _group_size(label: str) -> int | None:

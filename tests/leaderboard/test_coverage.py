@@ -6,6 +6,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -55,10 +56,12 @@ def test_the_h2o_cell_counts_the_published_seeds_and_prices_the_missing_ones(tmp
     costs = {cost.method: cost for cost in coverage.costs}
     assert (costs["h2o"].seeds_to_go, costs["h2o"].trainings_to_go) == (5, 5)
     assert costs["cql"].seeds_to_go == 10 - len(published_cql)
-    # Priced at the median of the method's own published trainings (compute.json's training counts).
+    # Priced at the median of the method's own published one-seed trainings (compute.json's training
+    # counts), whichever task they trained on.
     compute = json.loads((REFERENCE_RUNS_DIR / "lite" / "compute.json").read_text())["runs"]
     cql_times = sorted(entry["training"]["cpu_time_s"] for run_id, entry in compute.items()
-                       if run_id.startswith("cql/") and entry.get("training", {}).get("complete"))
+                       if run_id.startswith("cql/") and run_id.rpartition(".")[2].startswith("seed-")
+                       and entry.get("training", {}).get("complete"))
     assert costs["cql"].trainings_counted == len(cql_times) >= 1
     assert costs["cql"].cpu_to_go_s == pytest.approx(costs["cql"].trainings_to_go * costs["cql"].median_training_cpu_s)
     assert min(cql_times) <= costs["cql"].median_training_cpu_s <= max(cql_times)
@@ -181,6 +184,34 @@ def test_seeds_count_whichever_seeds_their_run_trained_beside(tmp_path):
     assert cost.unpriced_because == "the spec trains on cuda, and the published compute is CPU time"
     on_cpu = reference_coverage(spec_of(tmp_path, methods=["dap"], tasks=["halfcheetah-friction-5.0"]), root)
     assert on_cpu.costs[0].trainings_counted >= 5 and on_cpu.costs[0].cpu_to_go_s is not None  # every published DAP run
+
+
+def test_a_training_on_a_gpu_prices_no_cpu_run(tmp_path):
+    """A GPU run's CPU time is its host thread's, waiting on the device: a CPU sweep of the same
+    seeds per run is not priced from it."""
+    root = copy_published(tmp_path, "cql")
+    budget_dir = root / "lite"
+    grouped = spec_of(tmp_path, methods=["cql"], tasks=["hopper-friction-0.5"], seeds_per_run=5)
+    gpu_runs = [folder for folder in (budget_dir / "cql").glob("*/seeds-*")
+                if any(machine.get("cuda") for machine in
+                       json.loads((folder / "evaluation.json").read_text())["training_machines"])]
+    assert gpu_runs  # the lease's published 5-seed CQL runs
+    cost = reference_coverage(grouped, root).costs[0]
+    assert (cost.trainings_to_go, cost.trainings_counted, cost.cpu_to_go_s) == (1, 0, None)
+    assert cost.unpriced_because == "no published training of it (5 seed(s) per run) counted its compute"
+
+    # The same run, had it trained on a CPU (its records say so), prices it at its training's CPU.
+    for folder in gpu_runs:
+        record_file = folder / "evaluation.json"
+        record = json.loads(record_file.read_text())
+        for machine in record["training_machines"]:
+            machine.pop("cuda")
+        record_file.write_text(json.dumps(record))
+    compute = json.loads((budget_dir / "compute.json").read_text())["runs"]
+    times = sorted(compute[folder.relative_to(budget_dir).as_posix()]["training"]["cpu_time_s"] for folder in gpu_runs)
+    cost = reference_coverage(grouped, root).costs[0]
+    assert cost.trainings_counted == len(gpu_runs)
+    assert cost.median_training_cpu_s == pytest.approx(float(np.median(times)))
 
 
 def test_skippable_runs_are_the_published_ones_less_a_training_a_missing_run_still_scores(tmp_path):
