@@ -4,14 +4,15 @@
 #   bash scripts/gpu_reference_sweep.sh --prepare METHOD lite|STEPS TASK...   # here: fills .device-sweep/
 #   bash scripts/gpu_reference_sweep.sh [WAIT_S]                              # there, carrying .device-sweep
 #
-# --prepare writes a sweep spec (METHOD on each TASK, seeds 0-4 trained together in one CUDA run per
-# task, the offline-target track, the lite budget or STEPS steps for a smoke test; SAC and CQL replay
+# --prepare writes a sweep spec (METHOD on each TASK, seeds 0-4, or SEEDS=1,2,3,4, trained together in
+# one CUDA run per task, on the official target dataset or, DATASETS=medium,..., on each of those
+# qualities, the offline-target track, the lite budget or STEPS steps for a smoke test; SAC and CQL replay
 # their update from a CUDA graph, which computes what the eager update does), the Python 3.12 wheels
 # the device lacks, and each task's installed target dataset (the device's h5py is not the pinned
 # one, so a rebuild there would not match the manifest's sha256). What travels must stay under
 # 64 MiB: the wheels take about 26 MB, a task's dataset about 3 MB packed. Processes on one GPU take
-# turns, so more tasks do not finish sooner: the lease measured (evaluations on the GPU) would have
-# finished about two lite CQL tasks (README, Devices). RESUME_FROM=<a folder of the partial.*.tar a call brought back>
+# turns, so more tasks do not finish sooner: a lease finishes about two lite CQL tasks (measured
+# twice: README, Devices). RESUME_FROM=<a folder of the partial.*.tar a call brought back>
 # adds the runs that lease cut short (its partial.*.tar files, checked against the spec), which the
 # sweep there resumes from their checkpoints; each takes about 15 MB of the 64 MiB for 5 CQL seeds.
 #
@@ -37,12 +38,26 @@ if [ "${1:-}" = "--prepare" ]; then
   fi
   method=$2 budget=$3
   shift 3
-  n_tasks=$#
   case $budget in
     lite) budget_line="budget: lite" ;;
     *[!0-9]*|"") echo "error: budget $budget: expected lite or a number of steps" >&2; exit 2 ;;
     *) budget_line="steps: $budget" ;;
   esac
+  # SEEDS: the training seeds, all in one run per task (seeds a CPU session published already stay
+  # out: the dry run below refuses a run that would train them again). DATASETS: the target dataset
+  # qualities of the H2O paper's Table 1 (one run per task and quality, as in
+  # examples/sweeps/h2o-table1-lite.yaml); unset, the track's official dataset.
+  seeds=${SEEDS:-0,1,2,3,4} qualities=${DATASETS:-}
+  case ",$seeds," in
+    *[!0-9,]*|*,,*) echo "error: SEEDS=$seeds: expected training seeds separated by commas, e.g. SEEDS=1,2,3,4" >&2
+                    exit 2 ;;
+  esac
+  case ",$qualities," in
+    *[!a-z,-]*|*,,*) [ -z "$qualities" ] || { echo "error: DATASETS=$qualities: expected dataset qualities separated by commas, e.g. DATASETS=medium,medium-replay" >&2; exit 2; } ;;
+  esac
+  n_seeds=$(tr ',' '\n' <<< "$seeds" | wc -l)
+  n_datasets=$(tr ',' '\n' <<< "${qualities:-official}" | wc -l)
+  n_runs=$(( $# * n_datasets ))
   if [ "$dir" = .device-sweep ]; then  # kept out of git (and so out of what travels unless carried)
     grep -qxF '/.device-sweep*/' .git/info/exclude 2>/dev/null || echo '/.device-sweep*/' >> .git/info/exclude
   fi
@@ -51,17 +66,9 @@ if [ "${1:-}" = "--prepare" ]; then
   final=$dir dir=$dir.partial
   trap 'rm -rf "$dir"' EXIT
   rm -rf "$dir" && mkdir -p "$dir/wheels" "$dir/datasets"
-  # SKIP_WHEELS=1: no wheels (a check of this script where the packages are installed).
-  [ "${SKIP_WHEELS:-0}" = 1 ] || bash scripts/device_wheels.sh "$dir/wheels"
-  tasks=""
-  for task in "$@"; do
-    # Installs (or verifies) the dataset, its messages on stderr, and prints its id; a wrong task
-    # name fails here, before anything travels.
-    dataset=$(.venv/bin/offdyn-bench datasets download --task "$task" --print-id)
-    mkdir -p "$dir/datasets/$(dirname "$dataset")"
-    cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" "$dir/datasets/$(dirname "$dataset")/"
-    tasks="$tasks${tasks:+, }$task"
-  done
+  # The spec and its dry run first: a wrong task, quality or seed, or runs published already, are
+  # refused before minutes go into wheels and datasets.
+  tasks=$(printf '%s, ' "$@") tasks=${tasks%, }
   device=${DEVICE:-cuda}  # DEVICE=cpu: the same flow checked on a machine without a GPU
   overrides=""
   # The methods with a graph update are those whose config takes cuda_graph (an unknown method
@@ -73,8 +80,9 @@ if [ "${1:-}" = "--prepare" ]; then
   cat > "$dir/spec.yaml" <<EOF
 methods: [$method]
 tasks: [$tasks]
-seeds: [0, 1, 2, 3, 4]
-seeds_per_run: 5
+seeds: [${seeds//,/, }]
+seeds_per_run: $n_seeds
+${qualities:+datasets: [${qualities//,/, }]}
 track: offline-target
 $budget_line
 out: $sweep_root/gpu-reference
@@ -94,6 +102,18 @@ EOF
     echo "error: published already (leaderboard/reference-runs/lite), leave out their tasks:" $published >&2
     exit 2
   fi
+  # SKIP_WHEELS=1: no wheels (a check of this script where the packages are installed).
+  [ "${SKIP_WHEELS:-0}" = 1 ] || bash scripts/device_wheels.sh "$dir/wheels"
+  for task in "$@"; do
+    # Installs (or verifies) each dataset, its messages on stderr, and prints its id.
+    for quality in $(tr ',' ' ' <<< "${qualities:-official}"); do
+      choice=()
+      [ "$quality" = official ] || choice=(--quality "$quality")
+      dataset=$(.venv/bin/offdyn-bench datasets download --task "$task" "${choice[@]}" --print-id)
+      mkdir -p "$dir/datasets/$(dirname "$dataset")"
+      cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" "$dir/datasets/$(dirname "$dataset")/"
+    done
+  done
   if [ -n "${RESUME_FROM:-}" ]; then
     # Runs an earlier lease cut short (its partial.*.tar files) resume here from their checkpoints.
     archives=("$RESUME_FROM"/partial.*.tar)
@@ -102,10 +122,11 @@ EOF
     mkdir -p "$dir/partial" && cp "${archives[@]}" "$dir/partial/"
     echo "resumes: $(basename -a "${archives[@]}" | tr '\n' ' ')"
   fi
-  echo "$n_tasks" > "$dir/workers"
-  if [ "$method/$budget" = cql/lite ] && [ "$n_tasks" -gt 2 ]; then
-    # Measured on an H200: four lite CQL tasks at once stood at 25-45% after 9 minutes.
-    echo "note: $n_tasks lite CQL tasks: the measured lease would finish about two (README, Devices); the rest come back unfinished" >&2
+  echo "$n_runs" > "$dir/workers"
+  if [ "$method/$budget" = cql/lite ] && [ "$n_runs" -gt 2 ]; then
+    # Measured on an H200: four lite CQL tasks at once stood at 25-45% after 9 minutes; two
+    # finished in about 11 minutes.
+    echo "note: $n_runs lite CQL runs: the measured lease would finish about two (README, Devices); the rest come back unfinished" >&2
   fi
   # One xz archive: the datasets shrink about 3x, so more tasks fit in what a call carries.
   tar -cJf "$dir/payload.tar.xz" -C "$dir" wheels datasets && rm -rf "$dir/wheels" "$dir/datasets"

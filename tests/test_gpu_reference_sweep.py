@@ -34,7 +34,7 @@ def _script(*args: str, tmp_path: Path, **env: str) -> subprocess.CompletedProce
 @pytest.mark.parametrize(("args", "message"), [
     (["--prepare", "cql"], "usage: "),
     (["--prepare", "cql", "ten", "hopper-gravity-0.5"], "error: budget ten: expected lite or a number of steps"),
-    (["--prepare", "cql", "lite", "hopper-gravity-9"], "error: unknown task 'hopper-gravity-9'; closest valid names"),
+    (["--prepare", "cql", "lite", "hopper-gravity-9"], "tasks: unknown task 'hopper-gravity-9'; closest valid names"),
     (["--prepare", "cq1", "lite", "hopper-gravity-0.5"], "methods: unknown algorithm 'cq1'; closest valid names: 'cql'"),
     (["--prepare", "cql", "0", "hopper-gravity-0.5"], "steps: got 0; expected an integer >= 1"),
     # RL on target's lite records of this task are in leaderboard/reference-runs: no lease time for them
@@ -48,6 +48,39 @@ def test_a_bad_prepare_says_what_was_wrong_and_leaves_no_folder(args, message, t
     assert not any(tmp_path.glob("device-sweep*"))
 
 
+@pytest.mark.parametrize(("env", "message"), [
+    ({"SEEDS": "1,,2"}, "error: SEEDS=1,,2: expected training seeds separated by commas, e.g. SEEDS=1,2,3,4"),
+    ({"SEEDS": "0-4"}, "error: SEEDS=0-4: expected training seeds separated by commas"),
+    ({"DATASETS": "Medium"}, "error: DATASETS=Medium: expected dataset qualities separated by commas"),
+    ({"DATASETS": "medum"}, "datasets: unknown quality 'medum'; expected qualities from"),
+    ({"DATASETS": "medium"}, "hopper-gravity-0.5 has no medium dataset"),
+    # CQL's seed 0 on the H2O gravity setting's medium data is published (a CPU run): a lease
+    # training it again beside seed 1 could not publish the pair.
+    ({"SEEDS": "0,1"}, "cql/halfcheetah-h2o-gravity-2.0/medium-v0.seeds-0-1 (seed(s) 0 published)"),
+])
+def test_seeds_and_datasets_that_name_no_publishable_run_are_refused_before_anything_is_packed(env, message, tmp_path):
+    task = "halfcheetah-h2o-gravity-2.0" if env.get("SEEDS") == "0,1" else "hopper-gravity-0.5"
+    result = _script("--prepare", "cql", "lite", task, tmp_path=tmp_path, DEVICE="cpu",
+                     **({"DATASETS": "medium"} | env if task != "hopper-gravity-0.5" else env))
+    assert result.returncode == 2 and message in result.stderr, result.stderr
+    assert "rebuilding it from its recipe" not in result.stderr  # refused before any dataset
+    assert not any(tmp_path.glob("device-sweep*"))
+
+
+@pytest.mark.slow
+def test_a_lease_trains_the_seeds_and_dataset_qualities_it_is_given(tmp_path):
+    """The H2O paper's Table 1 cells: seeds 1-4 beside a published seed 0, on the medium data."""
+    prepared = _script("--prepare", "cql", "40", "halfcheetah-h2o-gravity-2.0", tmp_path=tmp_path, DEVICE="cpu",
+                       SEEDS="1,2,3,4", DATASETS="medium")
+    assert prepared.returncode == 0, prepared.stderr
+    spec = (tmp_path / "device-sweep" / "spec.yaml").read_text()
+    assert "seeds: [1, 2, 3, 4]\nseeds_per_run: 4\ndatasets: [medium]\n" in spec
+    with tarfile.open(tmp_path / "device-sweep" / "payload.tar.xz") as payload:
+        datasets = {Path(name).parts[2:4] for name in payload.getnames() if len(Path(name).parts) > 3}
+    assert datasets == {("halfcheetah-h2o-gravity-2p0", "medium-v0")}
+    assert (tmp_path / "device-sweep" / "workers").read_text().strip() == "1"
+
+
 def test_running_without_a_prepared_folder_is_refused(tmp_path):
     result = _script(tmp_path=tmp_path, OUT=str(tmp_path / "out"))
     assert result.returncode == 2 and "run --prepare here first" in result.stderr
@@ -59,7 +92,7 @@ def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_
     tasks = ["hopper-gravity-5.0", "hopper-friction-5.0", "hopper-kinematic-thigh-medium"]
     prepared = _script("--prepare", "cql", "lite", *tasks, tmp_path=tmp_path, DEVICE="cpu")
     assert prepared.returncode == 0, prepared.stderr
-    assert "note: 3 lite CQL tasks: the measured lease would finish about two" in prepared.stderr
+    assert "note: 3 lite CQL runs: the measured lease would finish about two" in prepared.stderr
     assert f"tasks: [{', '.join(tasks)}]" in (tmp_path / "device-sweep" / "spec.yaml").read_text()
     [travels] = [line for line in prepared.stdout.splitlines() if line.startswith("travels: ")]
     assert f", {tmp_path / 'device-sweep'} " in travels  # the folder to carry, not the one it was built in

@@ -140,6 +140,9 @@ def download_command(
              "TASK --track TRACK` trains on.")] = None,
     track: Annotated[str, typer.Option(help="With --task: the protocol track whose official dataset to install.")]
         = "offline-target",
+    quality: Annotated[Optional[str], typer.Option(
+        help="With --task: the task's dataset of this quality (random, source-policy, medium, medium-replay, "
+             "medium-expert, ...) instead of the track's official one.")] = None,
     print_id: Annotated[bool, typer.Option(
         "--print-id", help="For scripts: print only the dataset id on stdout (the messages go to stderr).")] = False,
     remote: Annotated[Optional[str], typer.Option(
@@ -156,7 +159,7 @@ def download_command(
     """Install a dataset and verify every sha256: from the remote when one is configured,
     otherwise rebuilt from its recipe. Says which it did."""
     with exit_on_error():
-        ident = _dataset_to_download(ident, task, track)
+        ident = _dataset_to_download(ident, task, track, quality)
         manifest: Manifest = read_manifest(manifest_path)
         limits = TransferLimits.from_environment()
         overrides = {"deadline_s": deadline, "min_rate_bytes_per_s": min_rate}
@@ -167,15 +170,21 @@ def download_command(
             typer.echo(ident)
 
 
-def _dataset_to_download(ident: str | None, task: str | None, track: str) -> str:
-    """The dataset id a download names: ``ident``, or ``task``'s official dataset on ``track``."""
+def _dataset_to_download(ident: str | None, task: str | None, track: str, quality: str | None = None) -> str:
+    """The dataset id a download names: ``ident``, or ``task``'s dataset of ``quality``, or
+    ``task``'s official dataset on ``track``."""
     if (ident is None) == (task is None):
         raise OffdynError("give a dataset ID or --task TASK, one of the two: e.g. `offdyn-bench datasets download "
                           "--task hopper-gravity-0.5` installs the dataset `train --task hopper-gravity-0.5 "
                           "--track offline-target` trains on")
     if ident is not None:
+        if quality is not None:
+            raise OffdynError(f"--quality {quality} picks one of --task's datasets; with a dataset ID ({ident}) "
+                              "leave it out")
         return ident
     assert task is not None
+    if quality is not None:
+        return dataset_id(task, quality)
     dataset = official_dataset(task, track)
     if dataset is None:
         raise OffdynError(f"track {track!r} trains on no target dataset; --task needs a track that does, "

@@ -227,6 +227,17 @@ def test_download_by_task_installs_the_dataset_train_uses_and_prints_only_its_id
     assert f"{expected}: installed at {isolated_paths / expected}; 2 files match" in again.stderr
 
 
+def test_download_by_task_and_quality_installs_that_dataset(no_remote, isolated_paths) -> None:
+    from offdyn_bench.protocol import official_dataset
+
+    result = runner.invoke(app, ["datasets", "download", "--task", "hopper-gravity-0.5", "--quality", "random",
+                                 "--print-id"])
+    assert result.exit_code == 0, result.output
+    assert result.stdout == "offdyn/hopper-gravity-0p5/random-v0\n"
+    assert result.stdout.strip() != official_dataset("hopper-gravity-0.5", "offline-target")
+    assert verify_installed(read_manifest().entries["offdyn/hopper-gravity-0p5/random-v0"]).ok
+
+
 @pytest.mark.parametrize(("args", "message"), [
     ([], "error: give a dataset ID or --task TASK, one of the two"),
     (["offdyn/hopper-gravity-0p5/source-policy-v0", "--task", "hopper-gravity-0.5"],
@@ -235,6 +246,13 @@ def test_download_by_task_installs_the_dataset_train_uses_and_prints_only_its_id
     (["--task", "hopper-gravity-0.5", "--track", "online"], "error: unknown track 'online'"),
     (["--task", "hopper-gravity-0.5", "--track", "online-target"],
      "error: track 'online-target' trains on no target dataset; --task needs a track that does"),
+    (["--task", "halfcheetah-h2o-gravity-2.0", "--quality", "medum"],
+     "error: unknown dataset quality 'medum'; closest valid names: 'medium', 'medium-replay', 'medium-expert'"),
+    (["--task", "hopper-gravity-0.5", "--quality", "medium"],
+     "error: task hopper-gravity-0.5 has no 'medium' dataset; its qualities are ['random', 'source-policy', 'source']"),
+    (["offdyn/hopper-gravity-0p5/random-v0", "--quality", "random"],
+     "error: --quality random picks one of --task's datasets; with a dataset ID (offdyn/hopper-gravity-0p5/random-v0) "
+     "leave it out"),
 ])
 def test_download_by_task_refuses_what_names_no_dataset(args, message, no_remote, isolated_paths) -> None:
     result = runner.invoke(app, ["datasets", "download", *args, "--print-id"])
