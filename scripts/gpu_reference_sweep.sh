@@ -10,13 +10,16 @@
 # their update from a CUDA graph, which computes what the eager update does), the Python 3.12 wheels
 # the device lacks, and each task's installed target dataset (the device's h5py is not the pinned
 # one, so a rebuild there would not match the manifest's sha256). What travels must stay under
-# 64 MiB: the wheels take about 26 MB, a task's dataset about 3 MB packed. Processes on one GPU take
+# 64 MiB: the wheels take about 26 MB, a core task's dataset about 3 MB packed (an H2O setting's medium
+# data about 16 MB). Processes on one GPU take
 # turns, so more tasks do not finish sooner: a lease finishes about two lite CQL tasks (measured
 # twice: README, Devices). RESUME_FROM=<a folder of the partial.*.tar a call brought back>
 # adds the runs that lease cut short (its partial.*.tar files, checked against the spec), which the
 # sweep there resumes from their checkpoints; each takes about 15 MB of the 64 MiB for 5 CQL seeds.
+# ADD=1 --prepare ... adds a group to the prepared folder (spec-2.yaml, its own sweep and out
+# gpu-reference-2, its datasets beside the first group's wheels), for runs one spec cannot hold.
 #
-# There, the sweep (local backend, one worker per task) starts in its own process session, so it
+# There, each group's sweep (local backend, one worker per run) starts in its own process session, so it
 # outlives the call; a second call made at once (before the machine's idle release) finds it and
 # only waits. Each call returns when the sweep ends or after WAIT_S seconds (default 540), with
 # the finished runs, checkpoints left out, in $OUT/sweep.tar.xz, the sweep's log, its status table
@@ -25,7 +28,7 @@
 # as far as what a call brings back allows ($OUT/partial.<method>.<task>.<seeds>.tar). Then here:
 #
 #   mkdir -p runs && tar -xJf <files_at>/sweep.tar.xz -C runs
-#   offdyn-bench leaderboard publish-runs runs/gpu-reference
+#   offdyn-bench leaderboard publish-runs runs/gpu-reference     # and runs/gpu-reference-N for each added group
 set -u
 # DEVICE_SWEEP_DIR and SWEEP_ROOT move the two folders (tests/test_gpu_reference_sweep.py does).
 dir=${DEVICE_SWEEP_DIR:-.device-sweep}
@@ -65,7 +68,19 @@ if [ "${1:-}" = "--prepare" ]; then
   # good one as it was.
   final=$dir dir=$dir.partial
   trap 'rm -rf "$dir"' EXIT
-  rm -rf "$dir" && mkdir -p "$dir/wheels" "$dir/datasets"
+  rm -rf "$dir"
+  # ADD=1 adds a group (its own spec, sweep and out) to a prepared folder, so runs that one spec
+  # cannot hold share a lease: an H2O setting's medium cell beside a core task, say. Group 1 keeps
+  # the plain names (spec.yaml, gpu-reference); group N adds -N.
+  if [ "${ADD:-0}" = 1 ]; then
+    [ -f "$final/spec.yaml" ] || { echo "error: ADD=1: no prepared $final/spec.yaml to add a group to; prepare the first group without ADD" >&2; exit 2; }
+    cp -a "$final" "$dir"
+    group=$(( $(ls "$dir"/spec*.yaml | wc -l) + 1 )) && sfx=-$group
+  else
+    group=1 sfx=""
+  fi
+  mkdir -p "$dir/wheels" "$dir/datasets"
+  spec=$dir/spec$sfx.yaml
   # The spec and its dry run first: a wrong task, quality or seed, or runs published already, are
   # refused before minutes go into wheels and datasets.
   tasks=$(printf '%s, ' "$@") tasks=${tasks%, }
@@ -77,7 +92,7 @@ if [ "${1:-}" = "--prepare" ]; then
       >/dev/null 2>&1; then
     overrides="overrides: {$method: {cuda_graph: \"true\"}}"
   fi
-  cat > "$dir/spec.yaml" <<EOF
+  cat > "$spec" <<EOF
 methods: [$method]
 tasks: [$tasks]
 seeds: [${seeds//,/, }]
@@ -85,7 +100,7 @@ seeds_per_run: $n_seeds
 ${qualities:+datasets: [${qualities//,/, }]}
 track: offline-target
 $budget_line
-out: $sweep_root/gpu-reference
+out: $sweep_root/gpu-reference$sfx
 device: $device
 max_retries: 1
 $overrides
@@ -95,15 +110,31 @@ EOF
   # to spend on them.
   skip_published=""
   [ "$budget" = lite ] && skip_published=--skip-published
-  dry_run=$(.venv/bin/offdyn-bench sweep "$dir/spec.yaml" --dry-run $skip_published --out "$dir/dry-run") || exit 2
+  dry_run=$(.venv/bin/offdyn-bench sweep "$spec" --dry-run $skip_published --out "$dir/dry-run") || exit 2
   rm -rf "$dir/dry-run"
   published=$(printf '%s\n' "$dry_run" | sed -n 's|^\([^ ]*\) (published: skipped.*|\1|p')
   if [ -n "$published" ]; then
     echo "error: published already (leaderboard/reference-runs/lite), leave out their tasks:" $published >&2
     exit 2
   fi
+  # A group may not train a (method, task, dataset) cell that another group trains: both could not
+  # be published, since a training seed is published once.
+  cells() { awk '/^[^ ]+\/[^ ]+\/[^ ]+ \(/ { n = split($1, part, "/"); data = part[3]
+                if (data ~ /\./) sub(/\.[^.]*$/, "", data); else data = ""
+                print part[1] "/" part[2] (data == "" ? "" : " (" data ")") }' | sort -u; }
+  for other in "$dir"/spec*.yaml; do
+    [ "$other" != "$spec" ] || continue
+    theirs=$(.venv/bin/offdyn-bench sweep "$other" --dry-run --out "$dir/dry-run" 2>/dev/null | cells) || exit 2
+    rm -rf "$dir/dry-run"
+    both=$(comm -12 <(printf '%s\n' "$theirs") <(printf '%s\n' "$dry_run" | cells))
+    if [ -n "$both" ]; then
+      echo "error: ADD=1: $(basename "$other") trains these already, and a seed is published once:" $both >&2
+      exit 2
+    fi
+  done
   # SKIP_WHEELS=1: no wheels (a check of this script where the packages are installed).
-  [ "${SKIP_WHEELS:-0}" = 1 ] || bash scripts/device_wheels.sh "$dir/wheels"
+  # An added group's payload holds its datasets only: the first group's wheels serve every group.
+  [ "${SKIP_WHEELS:-0}" = 1 ] || [ "$group" != 1 ] || bash scripts/device_wheels.sh "$dir/wheels"
   for task in "$@"; do
     # Installs (or verifies) each dataset, its messages on stderr, and prints its id.
     for quality in $(tr ',' ' ' <<< "${qualities:-official}"); do
@@ -118,19 +149,20 @@ EOF
     # Runs an earlier lease cut short (its partial.*.tar files) resume here from their checkpoints.
     archives=("$RESUME_FROM"/partial.*.tar)
     [ -f "${archives[0]}" ] || { echo "error: RESUME_FROM=$RESUME_FROM holds no partial.*.tar (what a lease call brings back)" >&2; exit 2; }
-    .venv/bin/python scripts/pack_unfinished_runs.py --check "$dir/spec.yaml" "${archives[@]}" || exit 2
-    mkdir -p "$dir/partial" && cp "${archives[@]}" "$dir/partial/"
+    .venv/bin/python scripts/pack_unfinished_runs.py --check "$spec" "${archives[@]}" || exit 2
+    mkdir -p "$dir/partial$sfx" && cp "${archives[@]}" "$dir/partial$sfx/"
     echo "resumes: $(basename -a "${archives[@]}" | tr '\n' ' ')"
   fi
-  echo "$n_runs" > "$dir/workers"
-  if [ "$method/$budget" = cql/lite ] && [ "$n_runs" -gt 2 ]; then
+  echo "$n_runs" > "$dir/workers$sfx"
+  all_runs=$(( $(cat "$dir"/workers* | paste -sd+) ))
+  if [ "$budget" = lite ] && [ "$all_runs" -gt 2 ] && grep -q '^methods: \[cql\]$' "$dir"/spec*.yaml; then
     # Measured on an H200: four lite CQL tasks at once stood at 25-45% after 9 minutes; two
     # finished in about 11 minutes.
-    echo "note: $n_runs lite CQL runs: the measured lease would finish about two (README, Devices); the rest come back unfinished" >&2
+    echo "note: $all_runs lite runs, CQL among them: the measured lease would finish about two lite CQL runs (README, Devices); the rest come back unfinished" >&2
   fi
   # One xz archive: the datasets shrink about 3x, so more tasks fit in what a call carries.
-  tar -cJf "$dir/payload.tar.xz" -C "$dir" wheels datasets && rm -rf "$dir/wheels" "$dir/datasets"
-  cat "$dir/spec.yaml"
+  tar -cJf "$dir/payload$sfx.tar.xz" -C "$dir" wheels datasets && rm -rf "$dir/wheels" "$dir/datasets"
+  cat "$spec"
   tracked=$(git ls-files -z | xargs -0 du -cb 2>/dev/null | tail -1 | cut -f1)
   carried=$(du -sb "$dir" | cut -f1)
   echo "travels: $(( (tracked + carried) / 1048576 )) MiB of 64 (tracked $(( tracked / 1048576 )), $final $(( carried / 1048576 )))"
@@ -147,7 +179,8 @@ unset MUJOCO_GL  # 'egl' fails where the EGL libraries are missing; nothing here
 export PYTHONUNBUFFERED=1
 payload=$sweep_root/payload
 if [ ! -f "$payload/.installed" ]; then
-  mkdir -p "$payload" && tar -xJf "$dir/payload.tar.xz" -C "$payload" || exit 1
+  mkdir -p "$payload"
+  for archive in "$dir"/payload*.tar.xz; do tar -xJf "$archive" -C "$payload" || exit 1; done
   # Where the packages are already installed (a check of this script here), the wheels are not.
   python3 -c "import mujoco, gymnasium, minari" 2>/dev/null \
     || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$payload/site" \
@@ -155,27 +188,39 @@ if [ ! -f "$payload/.installed" ]; then
   touch "$payload/.installed"
 fi
 export PYTHONPATH=$payload/site:$PWD MINARI_DATASETS_PATH=$payload/datasets
-pid_file=$sweep_root/sweep.pid
-if [ -f "$pid_file" ] && kill -0 "$(cat "$pid_file")" 2>/dev/null; then
-  echo "the sweep started by an earlier call is still running (pid $(cat "$pid_file")): waiting for it"
-else
-  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null
-  python3 -c "import torch, mujoco; print('torch', torch.__version__, 'mujoco', mujoco.__version__)" || exit 1
-  for archive in "$dir"/partial/*.tar; do
+# Group 1's spec.yaml, then any groups ADD=1 prepared (spec-2.yaml, ...), each its own sweep:
+# sweep<sfx>.pid, sweep<sfx>.log, gpu-reference<sfx>.
+specs=("$dir/spec.yaml")
+for spec in "$dir"/spec-*.yaml; do [ -f "$spec" ] && specs+=("$spec"); done
+suffix_of() { local name; name=$(basename "$1" .yaml); echo "${name#spec}"; }
+running() { [ -f "$sweep_root/sweep$1.pid" ] && kill -0 "$(cat "$sweep_root/sweep$1.pid")" 2>/dev/null; }
+any_running() { local spec; for spec in "${specs[@]}"; do running "$(suffix_of "$spec")" && return 0; done; return 1; }
+shown=0
+for spec in "${specs[@]}"; do
+  sfx=$(suffix_of "$spec") root=$sweep_root/gpu-reference$(suffix_of "$spec")
+  if running "$sfx"; then
+    echo "the sweep of $(basename "$spec") started by an earlier call is still running (pid $(cat "$sweep_root/sweep$sfx.pid")): waiting for it"
+    continue
+  fi
+  if [ $shown = 0 ]; then
+    shown=1
+    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null
+    python3 -c "import torch, mujoco; print('torch', torch.__version__, 'mujoco', mujoco.__version__)" || exit 1
+  fi
+  for archive in "$dir/partial$sfx"/*.tar; do
     [ -f "$archive" ] || continue
     # A run an earlier lease cut short, unless this machine has it already (a later call).
     run=$(tar -tf "$archive" | awk -F/ '$4 != "" {print $1 "/" $2 "/" $3 "/" $4; exit}')
-    [ -d "$sweep_root/gpu-reference/$run" ] || { mkdir -p "$sweep_root/gpu-reference" \
-      && tar -xf "$archive" -C "$sweep_root/gpu-reference" && echo "resuming $run from the archive"; }
+    [ -d "$root/$run" ] || { mkdir -p "$root" && tar -xf "$archive" -C "$root" && echo "resuming $run from the archive"; }
   done
   # A sweep resumes its unfinished runs from their checkpoints, so starting again is safe.
-  setsid nohup python3 -m offdyn_bench sweep "$dir/spec.yaml" --workers "$(cat "$dir/workers")" \
-    >> "$sweep_root/sweep.log" 2>&1 < /dev/null &
-  echo $! > "$pid_file"
-fi
+  setsid nohup python3 -m offdyn_bench sweep "$spec" --workers "$(cat "$dir/workers$sfx")" \
+    >> "$sweep_root/sweep$sfx.log" 2>&1 < /dev/null &
+  echo $! > "$sweep_root/sweep$sfx.pid"
+done
 deadline=$(( SECONDS + wait_s ))
 sampled=$(( SECONDS - 60 ))  # the first sample at once
-while kill -0 "$(cat "$pid_file")" 2>/dev/null && [ $SECONDS -lt $deadline ]; do
+while any_running && [ $SECONDS -lt $deadline ]; do
   # Once a minute, how busy the GPU is: a busy GPU and slow runs mean the updates are the limit.
   if [ $(( SECONDS - sampled )) -ge 60 ]; then
     sampled=$SECONDS
@@ -184,23 +229,28 @@ while kill -0 "$(cat "$pid_file")" 2>/dev/null && [ $SECONDS -lt $deadline ]; do
   fi
   sleep 5
 done
-if kill -0 "$(cat "$pid_file")" 2>/dev/null; then
+if any_running; then
   echo "still running after ${wait_s} s: call again at once (the machine keeps it for its idle release only)"
 else
   echo "the sweep has ended"
 fi
-tr '\r' '\n' < "$sweep_root/sweep.log" | grep -v -e Warning -e "^ *logger" | tail -3
-# Each run's steps, the share of its time its evaluations took, its compute: what a lease measured.
-python3 -m offdyn_bench sweep "$dir/spec.yaml" --status 2>&1 | grep -v Warning
+roots=()
+for spec in "${specs[@]}"; do
+  sfx=$(suffix_of "$spec")
+  tr '\r' '\n' < "$sweep_root/sweep$sfx.log" | grep -v -e Warning -e "^ *logger" | tail -3
+  # Each run's steps, the share of its time its evaluations took, its compute: what a lease measured.
+  python3 -m offdyn_bench sweep "$spec" --status 2>&1 | grep -v Warning
+  cp "$sweep_root/sweep$sfx.log" "$out/sweep$sfx.log"
+  [ -d "$sweep_root/gpu-reference$sfx" ] && roots+=("gpu-reference$sfx")
+done
 [ -s "$sweep_root/gpu.log" ] && tail -4 "$sweep_root/gpu.log" && cp "$sweep_root/gpu.log" "$out/gpu.log"
-cp "$sweep_root/sweep.log" "$out/sweep.log"
-[ -d "$sweep_root/gpu-reference" ] && tar -cJf "$out/sweep.tar.xz" -C "$sweep_root" --exclude=checkpoints gpu-reference
+[ ${#roots[@]} -gt 0 ] && tar -cJf "$out/sweep.tar.xz" -C "$sweep_root" --exclude=checkpoints "${roots[@]}"
 # Unfinished runs come back too, each with its newest checkpoint, within what a call brings back
 # (8 files of at most 16 MiB, 64 MiB in all): kept in a folder here, RESUME_FROM=<it> --prepare sends them
 # to the next lease.
-if [ -d "$sweep_root/gpu-reference" ]; then
+for root in "${roots[@]}"; do
   files=$(ls -A "$out" | wc -l) bytes=$(du -sb "$out" | cut -f1)
-  python3 scripts/pack_unfinished_runs.py "$sweep_root/gpu-reference" "$out" --max-files $(( 8 - files )) \
+  python3 scripts/pack_unfinished_runs.py "$sweep_root/$root" "$out" --max-files $(( 8 - files )) \
     --max-bytes $(( 63 * 1048576 - bytes ))
-fi
+done
 ls -la "$out"

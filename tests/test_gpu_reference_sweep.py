@@ -92,7 +92,7 @@ def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_
     tasks = ["hopper-gravity-5.0", "hopper-friction-5.0", "hopper-kinematic-thigh-medium"]
     prepared = _script("--prepare", "cql", "lite", *tasks, tmp_path=tmp_path, DEVICE="cpu")
     assert prepared.returncode == 0, prepared.stderr
-    assert "note: 3 lite CQL runs: the measured lease would finish about two" in prepared.stderr
+    assert "note: 3 lite runs, CQL among them: the measured lease would finish about two lite CQL runs" in prepared.stderr
     assert f"tasks: [{', '.join(tasks)}]" in (tmp_path / "device-sweep" / "spec.yaml").read_text()
     [travels] = [line for line in prepared.stdout.splitlines() if line.startswith("travels: ")]
     assert f", {tmp_path / 'device-sweep'} " in travels  # the folder to carry, not the one it was built in
@@ -108,6 +108,49 @@ def test_a_cuda_sweep_replays_the_graph_update_for_exactly_the_methods_whose_con
     has_graph = hasattr(get_algorithm(method).default_config(), "cuda_graph")
     assert has_graph == (method != "darc")  # the premise: DARC has no graph update
     assert (f'overrides: {{{method}: {{cuda_graph: "true"}}}}' in spec) == has_graph, spec
+
+
+def test_an_added_group_needs_a_prepared_folder_and_trains_no_cell_another_group_trains(tmp_path):
+    alone = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu", ADD="1")
+    assert alone.returncode == 2
+    assert "error: ADD=1: no prepared " in alone.stderr and "prepare the first group without ADD" in alone.stderr
+    assert not any(tmp_path.glob("device-sweep*"))
+
+    first = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu")
+    assert first.returncode == 0, first.stderr
+    prepared = sorted(path.name for path in (tmp_path / "device-sweep").iterdir())
+    # Other seeds of the same cell in a second group: the lease could not publish both runs.
+    again = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu", ADD="1",
+                    SEEDS="5,6")
+    assert again.returncode == 2
+    assert "error: ADD=1: spec.yaml trains these already, and a seed is published once: cql/hopper-gravity-0.5" \
+        in again.stderr
+    # The prepared folder is as it was.
+    assert sorted(path.name for path in (tmp_path / "device-sweep").iterdir()) == prepared
+    assert not (tmp_path / "device-sweep.partial").exists()
+
+
+@pytest.mark.slow
+def test_two_groups_share_a_lease_each_its_own_sweep_and_both_come_back(tmp_path):
+    """Runs no one spec can hold (here other seeds per run) go as groups of one lease."""
+    first = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu")
+    assert first.returncode == 0, first.stderr
+    added = _script("--prepare", "cql", "40", "hopper-friction-0.5", tmp_path=tmp_path, DEVICE="cpu", ADD="1",
+                    SEEDS="0,1")
+    assert added.returncode == 0, added.stderr
+    folder = tmp_path / "device-sweep"
+    assert "out: " + str(tmp_path / "sweep-root" / "gpu-reference-2") in (folder / "spec-2.yaml").read_text()
+    with tarfile.open(folder / "payload-2.tar.xz") as payload:  # its dataset only
+        assert {Path(name).parts[2] for name in payload.getnames() if len(Path(name).parts) > 3} == {"hopper-friction-0p5"}
+
+    ran = _script("900", tmp_path=tmp_path, OUT=str(tmp_path / "out"))
+    assert ran.returncode == 0, ran.stderr
+    assert "the sweep has ended" in ran.stdout and ran.stdout.count("1/1 runs done, 0 failed") == 2
+    with tarfile.open(tmp_path / "out" / "sweep.tar.xz") as archive:
+        names = archive.getnames()
+    assert "gpu-reference/runs/cql/hopper-gravity-0.5/seeds-0-4/evaluation.json" in names
+    assert "gpu-reference-2/runs/cql/hopper-friction-0.5/seeds-0-1/evaluation.json" in names
+    assert (tmp_path / "out" / "sweep.log").stat().st_size > 0 and (tmp_path / "out" / "sweep-2.log").stat().st_size > 0
 
 
 @pytest.mark.slow
