@@ -251,8 +251,8 @@ def test_download_by_task_and_quality_installs_that_dataset(no_remote, isolated_
     (["--task", "hopper-gravity-0.5", "--quality", "medium"],
      "error: task hopper-gravity-0.5 has no 'medium' dataset; its qualities are ['random', 'source-policy', 'source']"),
     (["offdyn/hopper-gravity-0p5/random-v0", "--quality", "random"],
-     "error: --quality random picks one of --task's datasets; with a dataset ID (offdyn/hopper-gravity-0p5/random-v0) "
-     "leave it out"),
+     ("error: --quality random picks one of --task's datasets; with a dataset ID "
+      "(offdyn/hopper-gravity-0p5/random-v0) leave it out")),
 ])
 def test_download_by_task_refuses_what_names_no_dataset(args, message, no_remote, isolated_paths) -> None:
     result = runner.invoke(app, ["datasets", "download", *args, "--print-id"])
