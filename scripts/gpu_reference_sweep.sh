@@ -27,12 +27,70 @@
 # a minute ($OUT/gpu.log); and each unfinished run with its newest checkpoint, most advanced first,
 # as far as what a call brings back allows ($OUT/partial.<method>.<task>.<seeds>.tar). Then here:
 #
-#   mkdir -p runs && tar -xJf <files_at>/sweep.tar.xz -C runs
-#   offdyn-bench leaderboard publish-runs runs/gpu-reference     # and runs/gpu-reference-N for each added group
+#   bash scripts/gpu_reference_sweep.sh --collect <files_at>     # after each call, before the next
+#
+# --collect files each unfinished run's archive by its group (runs/cut-short/group-N, what
+# RESUME_FROM takes next lease; one a later call finished is dropped), unpacks the finished runs
+# into runs/lease-<time>/ and publishes each group's (offdyn-bench leaderboard publish-runs).
 set -u
 # DEVICE_SWEEP_DIR and SWEEP_ROOT move the two folders (tests/test_gpu_reference_sweep.py does).
 dir=${DEVICE_SWEEP_DIR:-.device-sweep}
 sweep_root=${SWEEP_ROOT:-/tmp/offdyn-gpu-reference}
+if [ "${1:-}" = "--collect" ]; then
+  # Here, after each call: files what the call brought back before the next call replaces it.
+  set -e
+  from=${2:-} runs_dir=${3:-runs}
+  if [ -z "$from" ] || [ ! -d "$from" ]; then
+    echo "usage: $0 --collect FILES_AT [RUNS_DIR] (FILES_AT: the folder a lease call's files came back to; RUNS_DIR default runs)" >&2
+    exit 2
+  fi
+  partials=("$from"/partial.*.tar)
+  if [ ! -f "$from/sweep.tar.xz" ] && [ ! -f "${partials[0]}" ]; then
+    echo "error: $from holds neither sweep.tar.xz nor partial.*.tar (what a lease call brings back)" >&2
+    exit 2
+  fi
+  [ -f "$dir/spec.yaml" ] || { echo "error: no $dir/spec.yaml: --collect files the runs by the groups --prepare made; run it where --prepare ran" >&2; exit 2; }
+  # The unfinished runs first, each into its group's folder (what RESUME_FROM takes next lease).
+  for spec in "$dir"/spec*.yaml; do
+    group=$(basename "$spec" .yaml) && group=${group#spec} && group=${group#-} && group=${group:-1}
+    ids=$(.venv/bin/offdyn-bench sweep "$spec" --dry-run --out "$runs_dir/.collect-dry-run" 2>/dev/null \
+          | awk '/^[^ ]+\/[^ ]+\/[^ ]+ \(/ {print $1}')
+    rm -rf "$runs_dir/.collect-dry-run"
+    for id in $ids; do
+      name=partial.${id//\//.}.tar
+      [ -f "$from/$name" ] || continue
+      mkdir -p "$runs_dir/cut-short/group-$group" && cp "$from/$name" "$runs_dir/cut-short/group-$group/"
+      echo "kept: $name in $runs_dir/cut-short/group-$group (RESUME_FROM for group $group)"
+    done
+  done
+  for archive in "${partials[@]}"; do
+    [ -f "$archive" ] || continue
+    if ! ls "$runs_dir"/cut-short/group-*/"$(basename "$archive")" >/dev/null 2>&1; then
+      mkdir -p "$runs_dir/cut-short" && cp "$archive" "$runs_dir/cut-short/"
+      echo "warning: $(basename "$archive") is no run of $dir's groups: kept in $runs_dir/cut-short" >&2
+    fi
+  done
+  if [ -f "$from/sweep.tar.xz" ]; then
+    # Each call brings back every run finished so far: a folder per call, so none is mixed with
+    # an earlier lease's.
+    lease=$runs_dir/lease-$(date -u +%Y%m%dT%H%M%SZ)
+    mkdir -p "$lease" && tar -xJf "$from/sweep.tar.xz" -C "$lease"
+    for evaluation in "$lease"/*/runs/*/*/*/evaluation.json; do
+      [ -f "$evaluation" ] || continue
+      # A finished run's archive from an earlier call would resume what is done: dropped.
+      id=$(awk -F/ '{print $(NF-3) "/" $(NF-2) "/" $(NF-1)}' <<< "$evaluation")
+      for stale in "$runs_dir"/cut-short/group-*/"partial.${id//\//.}.tar"; do
+        [ -f "$stale" ] && rm "$stale" && echo "finished, so no longer kept: $stale"
+      done
+    done
+    for root in "$lease"/gpu-reference*; do
+      [ -d "$root" ] || continue
+      echo "publishing $root"
+      .venv/bin/offdyn-bench leaderboard publish-runs "$root" ${PUBLISH_TO:+--to "$PUBLISH_TO"}
+    done
+  fi
+  exit 0
+fi
 if [ "${1:-}" = "--prepare" ]; then
   set -e
   if [ $# -lt 4 ]; then

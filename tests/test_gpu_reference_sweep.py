@@ -192,6 +192,58 @@ def _partial_of_another_run(tmp_path: Path) -> Path:
     return tmp_path / "back"
 
 
+@pytest.mark.parametrize(("files", "message"), [
+    (None, "usage: "),
+    ([], "holds neither sweep.tar.xz nor partial.*.tar (what a lease call brings back)"),
+])
+def test_collecting_what_a_call_brought_back_refuses_a_folder_without_it(files, message, tmp_path):
+    back = tmp_path / "back"
+    if files is not None:
+        back.mkdir()
+    result = _script("--collect", str(back), str(tmp_path / "runs"), tmp_path=tmp_path)
+    assert result.returncode == 2 and message in result.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+def test_collecting_files_each_cut_short_run_by_its_group_and_drops_it_once_finished(tmp_path):
+    """A call's partial.*.tar goes to its group's RESUME_FROM folder; when a later call brings the
+    run back finished, the kept archive goes (resuming it would train what is done)."""
+    folder = tmp_path / "device-sweep"
+    folder.mkdir()
+    (folder / "spec.yaml").write_text(f"methods: [sac-source]\ntasks: [{TASK}]\nseeds: [1]\ntrack: offline-target\n"
+                                      f"steps: 300\nout: {tmp_path / 'sweep-root' / 'gpu-reference'}\n")
+    (folder / "spec-2.yaml").write_text(f"methods: [sac-source]\ntasks: [{TASK}]\nseeds: [0]\n"
+                                        f"track: offline-target\nsteps: 300\n"
+                                        f"out: {tmp_path / 'sweep-root' / 'gpu-reference-2'}\n")
+    back = _partial_of_another_run(tmp_path)  # sac-source/<TASK>/seed-0: group 2's run
+    (back / "partial.cql.hopper-gravity-0.5.seeds-0-4.tar").write_bytes(b"")  # no group's
+    runs = tmp_path / "runs"
+    collected = _script("--collect", str(back), str(runs), tmp_path=tmp_path)
+    assert collected.returncode == 0, collected.stderr
+    kept = runs / "cut-short" / "group-2" / f"partial.sac-source.{TASK}.seed-0.tar"
+    assert kept.read_bytes() == (back / kept.name).read_bytes()
+    assert not (runs / "cut-short" / "group-1").exists()
+    assert ("warning: partial.cql.hopper-gravity-0.5.seeds-0-4.tar is no run of " in collected.stderr
+            and (runs / "cut-short" / "partial.cql.hopper-gravity-0.5.seeds-0-4.tar").exists())
+
+    # The next call: the run came back finished (its evaluation written). Its archive is
+    # dropped, then the finished runs are published (here refused: 300 steps is no budget).
+    finished = tmp_path / "root" / "gpu-reference-2" / "runs" / "sac-source" / TASK / "seed-0"
+    finished.mkdir(parents=True)
+    (finished / "evaluation.json").write_text("{}")
+    later = tmp_path / "later"
+    later.mkdir()
+    with tarfile.open(later / "sweep.tar.xz", "w:xz") as archive:
+        archive.add(tmp_path / "root" / "gpu-reference-2", arcname="gpu-reference-2")
+    again = _script("--collect", str(later), str(runs), tmp_path=tmp_path, PUBLISH_TO=str(tmp_path / "published"))
+    assert not kept.exists() and f"finished, so no longer kept: {kept}" in again.stdout
+    [lease] = runs.glob("lease-*")
+    assert (lease / "gpu-reference-2" / "runs" / "sac-source" / TASK / "seed-0" / "evaluation.json").exists()
+    assert f"publishing {lease / 'gpu-reference-2'}" in again.stdout
+    assert again.returncode != 0 and "error: " in again.stderr and "Traceback" not in again.stderr  # refused, with why
+    assert not (tmp_path / "published").exists()
+
+
 def test_resuming_what_a_lease_did_not_finish_refuses_what_is_not_the_specs(tmp_path):
     (tmp_path / "empty").mkdir()
     nothing = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu",
