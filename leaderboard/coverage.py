@@ -206,16 +206,17 @@ def _published_training_cpu(budget_dir: Path, seeds_per_run: int) -> dict[str, l
         label = run_id.rsplit("/", 1)[-1].rpartition(".")[2]
         seeds = 1 if label.startswith("seed-") else _group_size(label)
         if (training is not None and training.complete and seeds == seeds_per_run
-                and not _trained_on_a_gpu(budget_dir, budget_dir / run_id)):
+                and not _trained_on_a_gpu(budget_dir, run_id)):
             times.setdefault(run_id.split("/", 1)[0], []).append(training.cpu_time_s)
     return times
 
 
-def _trained_on_a_gpu(budget_dir: Path, run_folder: Path) -> bool:
+def _trained_on_a_gpu(budget_dir: Path, run_id: str) -> bool:
     """Whether a published run's records name a GPU among the machines that trained it. Such a
     run's CPU time is its host thread's (waiting on the device), not what the training costs on a
     CPU, so it prices no CPU run."""
-    for path in sorted(run_folder.glob("evaluation*.json")):
+    method, task, label = run_id.split("/")
+    for path, _ in published_record_files(budget_dir / method / task, label):
         machines = read_published_record(budget_dir, path).get("training_machines") or []
         if any(isinstance(machine, dict) and machine.get("cuda") for machine in machines):
             return True

@@ -391,10 +391,10 @@ def _published_budgets(root: Path) -> list[Path]:
     return sorted(path for path in root.glob("*") if path.is_dir())
 
 
-def published_record_files(task_dir: Path) -> list[tuple[Path, str]]:
+def published_record_files(task_dir: Path, label: str = "*") -> list[tuple[Path, str]]:
     """(path, side) of each record file under a published ``<budget>/<method>/<task>`` folder, seed
-    folder by seed folder ([] where the folder does not exist)."""
-    return [(path, RECORD_FILES[path.name]) for path in sorted(task_dir.glob("*/evaluation*.json"))
+    folder by seed folder, or in the one seed folder ``label`` ([] where there is none)."""
+    return [(path, RECORD_FILES[path.name]) for path in sorted(task_dir.glob(f"{label}/evaluation*.json"))
             if path.name in RECORD_FILES]
 
 

@@ -36,6 +36,17 @@ set -u
 # DEVICE_SWEEP_DIR and SWEEP_ROOT move the two folders (tests/test_gpu_reference_sweep.py does).
 dir=${DEVICE_SWEEP_DIR:-.device-sweep}
 sweep_root=${SWEEP_ROOT:-/tmp/offdyn-gpu-reference}
+# A group's suffix from its spec file (spec.yaml -> "", spec-2.yaml -> -2); the run ids in a sweep's
+# dry run; those of a spec (here only: the device has no .venv); a cut-short run's archive name, as
+# scripts/pack_unfinished_runs.py writes it.
+suffix_of() { local name; name=$(basename "$1" .yaml); echo "${name#spec}"; }
+run_ids() { awk '/^[^ ]+\/[^ ]+\/[^ ]+ \(/ {print $1}'; }
+spec_run_ids() {
+  local scratch; scratch=$(mktemp -d)
+  .venv/bin/offdyn-bench sweep "$1" --dry-run --out "$scratch/out" 2>/dev/null | run_ids
+  rm -rf "$scratch"
+}
+archive_of() { echo "partial.${1//\//.}.tar"; }
 if [ "${1:-}" = "--collect" ]; then
   # Here, after each call: files what the call brought back before the next call replaces it.
   set -e
@@ -51,24 +62,21 @@ if [ "${1:-}" = "--collect" ]; then
   fi
   [ -f "$dir/spec.yaml" ] || { echo "error: no $dir/spec.yaml: --collect files the runs by the groups --prepare made; run it where --prepare ran" >&2; exit 2; }
   # The unfinished runs first, each into its group's folder (what RESUME_FROM takes next lease).
+  declare -A filed=()
   for spec in "$dir"/spec*.yaml; do
-    group=$(basename "$spec" .yaml) && group=${group#spec} && group=${group#-} && group=${group:-1}
-    ids=$(.venv/bin/offdyn-bench sweep "$spec" --dry-run --out "$runs_dir/.collect-dry-run" 2>/dev/null \
-          | awk '/^[^ ]+\/[^ ]+\/[^ ]+ \(/ {print $1}')
-    rm -rf "$runs_dir/.collect-dry-run"
-    for id in $ids; do
-      name=partial.${id//\//.}.tar
+    group=$(suffix_of "$spec") && group=${group#-} && group=${group:-1}
+    for id in $(spec_run_ids "$spec"); do
+      name=$(archive_of "$id")
       [ -f "$from/$name" ] || continue
       mkdir -p "$runs_dir/cut-short/group-$group" && cp "$from/$name" "$runs_dir/cut-short/group-$group/"
+      filed[$name]=1
       echo "kept: $name in $runs_dir/cut-short/group-$group (RESUME_FROM for group $group)"
     done
   done
   for archive in "${partials[@]}"; do
-    [ -f "$archive" ] || continue
-    if ! ls "$runs_dir"/cut-short/group-*/"$(basename "$archive")" >/dev/null 2>&1; then
-      mkdir -p "$runs_dir/cut-short" && cp "$archive" "$runs_dir/cut-short/"
-      echo "warning: $(basename "$archive") is no run of $dir's groups: kept in $runs_dir/cut-short" >&2
-    fi
+    [ -f "$archive" ] && [ -z "${filed[$(basename "$archive")]:-}" ] || continue
+    mkdir -p "$runs_dir/cut-short" && cp "$archive" "$runs_dir/cut-short/"
+    echo "warning: $(basename "$archive") is no run of $dir's groups: kept in $runs_dir/cut-short" >&2
   done
   if [ -f "$from/sweep.tar.xz" ]; then
     # Each call brings back every run finished so far: a folder per call, so none is mixed with
@@ -79,7 +87,7 @@ if [ "${1:-}" = "--collect" ]; then
       [ -f "$evaluation" ] || continue
       # A finished run's archive from an earlier call would resume what is done: dropped.
       id=$(awk -F/ '{print $(NF-3) "/" $(NF-2) "/" $(NF-1)}' <<< "$evaluation")
-      for stale in "$runs_dir"/cut-short/group-*/"partial.${id//\//.}.tar"; do
+      for stale in "$runs_dir"/cut-short/group-*/"$(archive_of "$id")"; do
         [ -f "$stale" ] && rm "$stale" && echo "finished, so no longer kept: $stale"
       done
     done
@@ -177,14 +185,11 @@ EOF
   fi
   # A group may not train a (method, task, dataset) cell that another group trains: both could not
   # be published, since a training seed is published once.
-  cells() { awk '/^[^ ]+\/[^ ]+\/[^ ]+ \(/ { n = split($1, part, "/"); data = part[3]
-                if (data ~ /\./) sub(/\.[^.]*$/, "", data); else data = ""
-                print part[1] "/" part[2] (data == "" ? "" : " (" data ")") }' | sort -u; }
+  cells() { awk -F/ '{ data = $3; if (data ~ /\./) sub(/\.[^.]*$/, "", data); else data = ""
+                      print $1 "/" $2 (data == "" ? "" : " (" data ")") }' | sort -u; }
   for other in "$dir"/spec*.yaml; do
     [ "$other" != "$spec" ] || continue
-    theirs=$(.venv/bin/offdyn-bench sweep "$other" --dry-run --out "$dir/dry-run" 2>/dev/null | cells) || exit 2
-    rm -rf "$dir/dry-run"
-    both=$(comm -12 <(printf '%s\n' "$theirs") <(printf '%s\n' "$dry_run" | cells))
+    both=$(comm -12 <(spec_run_ids "$other" | cells) <(printf '%s\n' "$dry_run" | run_ids | cells))
     if [ -n "$both" ]; then
       echo "error: ADD=1: $(basename "$other") trains these already, and a seed is published once:" $both >&2
       exit 2
@@ -250,12 +255,11 @@ export PYTHONPATH=$payload/site:$PWD MINARI_DATASETS_PATH=$payload/datasets
 # sweep<sfx>.pid, sweep<sfx>.log, gpu-reference<sfx>.
 specs=("$dir/spec.yaml")
 for spec in "$dir"/spec-*.yaml; do [ -f "$spec" ] && specs+=("$spec"); done
-suffix_of() { local name; name=$(basename "$1" .yaml); echo "${name#spec}"; }
 running() { [ -f "$sweep_root/sweep$1.pid" ] && kill -0 "$(cat "$sweep_root/sweep$1.pid")" 2>/dev/null; }
 any_running() { local spec; for spec in "${specs[@]}"; do running "$(suffix_of "$spec")" && return 0; done; return 1; }
 shown=0
 for spec in "${specs[@]}"; do
-  sfx=$(suffix_of "$spec") root=$sweep_root/gpu-reference$(suffix_of "$spec")
+  sfx=$(suffix_of "$spec") root=$sweep_root/gpu-reference$sfx
   if running "$sfx"; then
     echo "the sweep of $(basename "$spec") started by an earlier call is still running (pid $(cat "$sweep_root/sweep$sfx.pid")): waiting for it"
     continue
