@@ -131,6 +131,22 @@ def verify_command(ident: Annotated[str, typer.Argument(metavar="ID")], manifest
         typer.echo(f"{ident}: OK ({len(manifest.get(ident).files or {})} files verified) at {report.path}")
 
 
+@datasets_app.command("returns")
+def returns_command(ident: Annotated[str, typer.Argument(metavar="ID")]) -> None:
+    """What an installed dataset's behaviour earns: its episodes' returns (count, mean, min, max),
+    the level an offline method trained on it is read against."""
+    import numpy as np
+
+    from offdyn_bench.datasets.ensure import load_installed
+
+    with exit_on_error():
+        returns = [float(np.sum(episode.rewards)) for episode in load_installed(ident).iterate_episodes()]
+        if not returns:
+            raise OffdynError(f"{ident} holds no episode")
+        typer.echo(f"{ident}: {len(returns)} episodes; return mean {np.mean(returns):.1f}, "
+                   f"min {min(returns):.1f}, max {max(returns):.1f}")
+
+
 @datasets_app.command("download")
 def download_command(
     ident: Annotated[Optional[str], typer.Argument(

@@ -227,6 +227,29 @@ def test_download_by_task_installs_the_dataset_train_uses_and_prints_only_its_id
     assert f"{expected}: installed at {isolated_paths / expected}; 2 files match" in again.stderr
 
 
+def test_returns_says_what_an_installed_datasets_behaviour_earns(no_remote, isolated_paths) -> None:
+    import re
+
+    from offdyn_bench.datasets.ensure import load_installed
+
+    ident = "offdyn/hopper-gravity-0p5/random-v0"
+    missing = runner.invoke(app, ["datasets", "returns", ident])
+    assert missing.exit_code == 2 and f"offdyn-bench datasets download {ident}" in missing.stderr
+    assert runner.invoke(app, ["datasets", "download", ident]).exit_code == 0
+    result = runner.invoke(app, ["datasets", "returns", ident])
+    assert result.exit_code == 0, result.output
+    found = re.fullmatch(rf"{ident}: (\d+) episodes; return mean (\S+), min (\S+), max (\S+)\n", result.stdout)
+    assert found, result.stdout
+    episodes, mean, low, high = int(found[1]), *map(float, found.groups()[1:])
+    dataset = load_installed(ident)
+    assert episodes == dataset.total_episodes
+    # Every transition's reward is in one episode's return: the returns add up to the data's rewards.
+    total = sum(float(episode.rewards.sum()) for episode in dataset.iterate_episodes())
+    assert mean * episodes == pytest.approx(total, abs=0.05 * episodes)
+    # A random Hopper falls within a few dozen steps, each worth about 1 (alive) plus forward speed.
+    assert 0 < low <= mean <= high < 200
+
+
 def test_download_by_task_and_quality_installs_that_dataset(no_remote, isolated_paths) -> None:
     from offdyn_bench.protocol import official_dataset
 
