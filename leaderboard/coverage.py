@@ -5,8 +5,11 @@ x the core suite x 5 seeds at ``lite``), published run by run as sweeps finish t
 sessions and machines (:mod:`leaderboard.reference_runs`). ``offdyn-bench leaderboard coverage
 SPEC`` says how far it got: per task (and dataset) and method, how many of the spec's seeds have a
 published record of exactly the spec's run, and for the runs still missing, the trainings they
-need and the CPU those would take at the median of the method's published CPU trainings (their
-own counts, in ``<budget>/compute.json``; a GPU training's CPU time is its host thread's).
+need and the CPU those would take at the median of the method's published CPU trainings on the
+same robot, or on any robot where it has none on that one (their own counts, in
+``<budget>/compute.json``; a GPU training's CPU time is its host thread's). Per robot, because a
+training's cost is mostly its robot's: observations, network inputs and simulation steps differ
+(an Ant DAP training took about 31 minutes of CPU, a Hopper one about 22).
 
 A run counts as published when the records the sweep would write for it are in the published
 tree (``<budget>/<method>/<task>/<seed label>/``, the sweep's own layout; RL on source's source
@@ -32,9 +35,22 @@ from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
 from offdyn_bench.sweep.driver import format_duration
 from offdyn_bench.sweep.runs import Run, expand
 from offdyn_bench.sweep.spec import SweepSpec
+from offdyn_bench.tasks import TASKS
 
 Row = tuple[str, str | None]
 """A table row: the task, and the dataset tag of a ``datasets`` sweep's runs (None otherwise)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotPrice:
+    """What a method's missing trainings on one robot are priced at."""
+
+    robot: str
+    trainings_to_go: int
+    median_training_cpu_s: float | None
+    """The median CPU time of the method's published trainings on this robot; None where it has
+    none counted on it (the method's median over every robot prices them then)."""
+    trainings_counted: int
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,18 +63,29 @@ class MethodCost:
     """Distinct trainings behind the missing runs: RL on source trains once per source and seed, so
     runs that score one policy on several tasks count it once."""
     median_training_cpu_s: float | None
-    """The median CPU time of the method's published trainings at the budget (any task), from
+    """The median CPU time of the method's published trainings at the budget (any robot), from
     ``compute.json``; None when none counted its compute."""
     trainings_counted: int
     """How many published trainings that median is over."""
     unpriced_because: str = ""
     """Why there is no median (empty where there is one)."""
+    robots: tuple[RobotPrice, ...] = ()
+    """The missing trainings per robot, each priced at the robot's own median where the method has
+    one there; empty prices every training at the method's median."""
+
+    def price_of(self, robot: RobotPrice) -> float | None:
+        """The CPU seconds one of ``robot``'s missing trainings is priced at."""
+        return robot.median_training_cpu_s if robot.median_training_cpu_s is not None else self.median_training_cpu_s
 
     @property
     def cpu_to_go_s(self) -> float | None:
         if self.trainings_to_go == 0:
             return 0.0
-        return None if self.median_training_cpu_s is None else self.trainings_to_go * self.median_training_cpu_s
+        if self.median_training_cpu_s is None:
+            return None
+        if not self.robots:
+            return self.trainings_to_go * self.median_training_cpu_s
+        return sum(robot.trainings_to_go * (self.price_of(robot) or 0.0) for robot in self.robots)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,20 +168,30 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     needed_trainings = {run.training_folder for run in missing}
     skippable = frozenset(run.run_id for run in runs
                           if run.run_id in complete_ids and run.folder not in needed_trainings)
-    counted = _published_training_cpu(budget_dir, spec.seeds_per_run) if spec.device == "cpu" else {}
+    counted: dict[str, dict[str | None, list[float]]] = {}  # method -> robot -> CPU seconds
+    for run_id, cpu in (published_training_cpu(budget_dir, spec.seeds_per_run) if spec.device == "cpu" else {}).items():
+        method, task, _ = run_id.split("/")
+        counted.setdefault(method, {}).setdefault(_robot_of(task), []).append(cpu)
     costs = []
     for method in spec.methods:
         lacking = [run for run in missing if run.method == method]
-        trainings = {run.training_folder for run in lacking}
-        times = counted.get(method, [])
+        # RL on source's tasks that share a source share its training, and its robot.
+        trainings = {run.training_folder: _robot_of(run.task) for run in lacking}
+        on_robot = counted.get(method, {})
+        times = [cpu for robot_times in on_robot.values() for cpu in robot_times]
         why = ""
         if spec.device != "cpu":
             why = f"the spec trains on {spec.device}, and the published compute is CPU time"
         elif not times:
             why = f"no published training of it ({spec.seeds_per_run} seed(s) per run) counted its compute"
         seeds_to_go = sum(len(seeds) - len(published.get(key, ())) for key, seeds in wanted.items() if key[0] == method)
+        robots = []
+        for robot in sorted(set(trainings.values()), key=lambda name: (name is None, name or "")):
+            own = on_robot.get(robot, []) if robot is not None else []
+            robots.append(RobotPrice(robot or "unknown robot", sum(1 for r in trainings.values() if r == robot),
+                                     statistics.median(own) if own else None, len(own)))
         costs.append(MethodCost(method, seeds_to_go, len(trainings),
-                                statistics.median(times) if times else None, len(times), why))
+                                statistics.median(times) if times else None, len(times), why, tuple(robots)))
     return Coverage(spec.source, spec.budget, budget_dir, tuple(spec.methods),
                     {key: tuple(sorted(seeds)) for key, seeds in wanted.items()},
                     {key: tuple(sorted(published.get(key, ()))) for key in wanted},
@@ -197,17 +234,23 @@ def _difference(spec: SweepSpec, run: Run, record: dict[str, Any]) -> str:
     return "; ".join(differs)
 
 
-def _published_training_cpu(budget_dir: Path, seeds_per_run: int) -> dict[str, list[float]]:
-    """Per method, the CPU seconds of each published CPU training of ``seeds_per_run`` seeds that
-    counted its compute whole."""
-    times: dict[str, list[float]] = {}
+def _robot_of(task: str) -> str | None:
+    """The robot a task runs (None for a task this version does not know)."""
+    pair = TASKS.get(task)
+    return None if pair is None else pair.robot
+
+
+def published_training_cpu(budget_dir: Path, seeds_per_run: int) -> dict[str, float]:
+    """Run id (``method/task/label``) -> the CPU seconds of each published CPU training of
+    ``seeds_per_run`` seeds that counted its compute whole."""
+    times: dict[str, float] = {}
     for run_id, entry in sorted(read_published_compute(budget_dir).items()):
         training = TrainingCompute.parse(entry.get("training"))
         label = run_id.rsplit("/", 1)[-1].rpartition(".")[2]
         seeds = 1 if label.startswith("seed-") else _group_size(label)
         if (training is not None and training.complete and seeds == seeds_per_run
                 and not _trained_on_a_gpu(budget_dir, run_id)):
-            times.setdefault(run_id.split("/", 1)[0], []).append(training.cpu_time_s)
+            times[run_id] = training.cpu_time_s
     return times
 
 
@@ -227,6 +270,15 @@ def _group_size(label: str) -> int | None:
     """``seeds-0-4`` -> 5 (None for anything else)."""
     first, _, last = label.removeprefix("seeds-").partition("-")
     return int(last) - int(first) + 1 if first.isdigit() and last.isdigit() else None
+
+
+def _robot_estimate(cost: MethodCost, robot: RobotPrice) -> str:
+    """``Ant: 10 x 31m05s (median of 10 on Ant)``, or where the method has none on the robot,
+    ``Ant: 10 x 22m01s (median of 55 on any robot, none on Ant)``."""
+    price = format_duration(cost.price_of(robot) or 0.0)
+    where = (f"median of {robot.trainings_counted} on {robot.robot}" if robot.median_training_cpu_s is not None
+             else f"median of {cost.trainings_counted} on any robot, none on {robot.robot}")
+    return f"{robot.robot}: {robot.trainings_to_go} x {price} ({where})"
 
 
 def coverage_lines(coverage: Coverage) -> list[str]:
@@ -264,16 +316,18 @@ def coverage_lines(coverage: Coverage) -> list[str]:
         total = "CPU not estimated" if not known else f"about {format_duration(sum(known))} of CPU"
         if known and unknown:
             total += f" for all but {', '.join(unknown)}"
-        lines.append(f"to go: {runs} seed result(s), {trainings} training(s), {total} "
-                     "(each method's median training CPU at this budget, from compute.json):")
+        lines.append(f"to go: {runs} seed result(s), {trainings} training(s), {total} (each training at the "
+                     "median CPU of its method's published trainings at this budget on its robot, or on any "
+                     "robot where none is on its own; from compute.json):")
         for cost in to_go:
             if cost.median_training_cpu_s is None:
                 estimate = f"not estimated: {cost.unpriced_because}"
             else:
-                estimate = (f"x {format_duration(cost.median_training_cpu_s)} (median of {cost.trainings_counted}) "
-                            f"= {format_duration(cost.cpu_to_go_s or 0.0)}")
+                estimate = f"= {format_duration(cost.cpu_to_go_s or 0.0)}"
             lines.append(f"  {cost.method}: {cost.seeds_to_go} seed result(s), {cost.trainings_to_go} training(s) "
                          f"{estimate}")
+            if cost.median_training_cpu_s is not None:
+                lines += [f"    {_robot_estimate(cost, robot)}" for robot in cost.robots]
         lines.append(f"run only those: offdyn-bench sweep {shlex.quote(coverage.spec_source)} --skip-published")
     if coverage.others:
         lines.append(f"{len(coverage.others)} published record(s) where the spec's runs belong are other runs "

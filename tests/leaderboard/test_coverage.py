@@ -15,6 +15,7 @@ from leaderboard.coverage import coverage_lines, reference_coverage
 from leaderboard.reference_runs import REFERENCE_RUNS_DIR
 from leaderboard.submission import SubmissionError
 from offdyn_bench.sweep import parse_spec
+from offdyn_bench.sweep.driver import format_duration
 
 H2O_GRAVITY = "halfcheetah-h2o-gravity-2.0"
 HOPPER_TASKS = ["hopper-gravity-0.5", "hopper-friction-0.5"]
@@ -56,8 +57,8 @@ def test_the_h2o_cell_counts_the_published_seeds_and_prices_the_missing_ones(tmp
     costs = {cost.method: cost for cost in coverage.costs}
     assert (costs["h2o"].seeds_to_go, costs["h2o"].trainings_to_go) == (5, 5)
     assert costs["cql"].seeds_to_go == 10 - len(published_cql)
-    # Priced at the median of the method's own published one-seed trainings (compute.json's training
-    # counts), whichever task they trained on.
+    # Priced at the median of the method's own published one-seed CPU trainings on the robot
+    # (compute.json's training counts): CQL's one-seed ones are all HalfCheetah's, like this task.
     compute = json.loads((REFERENCE_RUNS_DIR / "lite" / "compute.json").read_text())["runs"]
     cql_times = sorted(entry["training"]["cpu_time_s"] for run_id, entry in compute.items()
                        if run_id.startswith("cql/") and run_id.rpartition(".")[2].startswith("seed-")
@@ -137,13 +138,57 @@ def test_a_method_without_a_counted_training_is_not_priced(tmp_path):
     assert coverage.costs[0].cpu_to_go_s is None
     lines = coverage_lines(coverage)
     assert lines[-1] == "run only those: offdyn-bench sweep 'test spec' --skip-published"
-    assert lines[-3] == ("to go: 2 seed result(s), 2 training(s), CPU not estimated (each method's median training CPU "
-                         "at this budget, from compute.json):")
+    assert lines[-3] == ("to go: 2 seed result(s), 2 training(s), CPU not estimated (each training at the median CPU "
+                         "of its method's published trainings at this budget on its robot, or on any robot where none "
+                         "is on its own; from compute.json):")
     assert lines[-2] == ("  dap: 2 seed result(s), 2 training(s) not estimated: no published training of it "
                          "(1 seed(s) per run) counted its compute")
     (root / "lite" / "compute.json").write_text("[1, 2]")
     with pytest.raises(SubmissionError, match=r"compute.json: unreadable .*; move it away to record compute anew"):
         reference_coverage(spec, root)
+
+
+def _dap_training_cpu(compute: dict, robot_prefix: str = "") -> list[float]:
+    """The CPU seconds of the published one-seed DAP trainings (on tasks starting ``robot_prefix``)."""
+    return [entry["training"]["cpu_time_s"] for run_id, entry in compute["runs"].items()
+            if run_id.startswith(f"dap/{robot_prefix}") and entry.get("training", {}).get("complete")]
+
+
+def test_a_missing_training_is_priced_on_its_own_robot(tmp_path):
+    """An Ant DAP training costs about 1.4 times a Hopper one (its 105-number
+    observations, its costlier steps), so each robot's missing trainings are priced at the
+    method's median there; a robot the method has not trained on yet falls back to its median
+    over every robot, and the table says which."""
+    root = copy_published(tmp_path, "dap")
+    tasks = ["ant-friction-5.0", "hopper-gravity-0.5", "hopper-friction-0.5"]
+    for task in tasks:
+        shutil.rmtree(root / "lite" / "dap" / task / "seed-1")
+    spec = spec_of(tmp_path, methods=["dap"], tasks=tasks)
+    compute_file = root / "lite" / "compute.json"
+    compute = json.loads(compute_file.read_text())
+    ant, hopper = _dap_training_cpu(compute, "ant-"), _dap_training_cpu(compute, "hopper-")
+    assert len(ant) >= 5 and len(hopper) >= 5 and np.median(ant) > 1.3 * np.median(hopper)  # the premise
+    (cost,) = reference_coverage(spec, root).costs
+    assert [(robot.robot, robot.trainings_to_go, robot.trainings_counted) for robot in cost.robots] == [
+        ("Ant", 1, len(ant)), ("Hopper", 2, len(hopper))]
+    assert cost.cpu_to_go_s == pytest.approx(float(np.median(ant) + 2 * np.median(hopper)))
+    assert cost.median_training_cpu_s == pytest.approx(float(np.median(_dap_training_cpu(compute))))
+    lines = coverage_lines(reference_coverage(spec, root))
+    assert lines[-4].startswith("  dap: 3 seed result(s), 3 training(s) = ")
+    assert lines[-3] == f"    Ant: 1 x {format_duration(float(np.median(ant)))} (median of {len(ant)} on Ant)"
+    assert lines[-2] == f"    Hopper: 2 x {format_duration(float(np.median(hopper)))} (median of {len(hopper)} on Hopper)"
+
+    # No Ant training counted: the Ant one is priced at DAP's median over the other robots.
+    compute["runs"] = {run_id: entry for run_id, entry in compute["runs"].items() if not run_id.startswith("dap/ant-")}
+    compute_file.write_text(json.dumps(compute))
+    everywhere = _dap_training_cpu(compute)
+    (cost,) = reference_coverage(spec, root).costs
+    assert [(robot.robot, robot.median_training_cpu_s is None) for robot in cost.robots] == [
+        ("Ant", True), ("Hopper", False)]
+    assert cost.cpu_to_go_s == pytest.approx(float(np.median(everywhere) + 2 * np.median(hopper)))
+    assert coverage_lines(reference_coverage(spec, root))[-3] == (
+        f"    Ant: 1 x {format_duration(float(np.median(everywhere)))} (median of {len(everywhere)} on any robot, "
+        "none on Ant)")
 
 
 def test_the_command_and_its_refusals(tmp_path):
