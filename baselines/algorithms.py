@@ -110,6 +110,31 @@ def apply_overrides(config: Any, overrides: Mapping[str, str], algo: str) -> Any
     return config
 
 
+EXECUTION_SETTINGS = frozenset({"cuda_graph"})
+"""Settings that choose how an update runs, not what it computes (a CUDA-graph replay computes the
+eager update's numbers, :mod:`baselines.sac`): runs that differ only in these are the same run."""
+
+
+def overrides_of(algo: str, config: Mapping[str, Any]) -> dict[str, str]:
+    """The ``--set key=value`` settings that turn ``algo``'s default config into ``config`` (a
+    run's ``config.json`` ``config``): every leaf that differs from this version's default, with
+    nested groups flattened (``sac.batch_size``) and values as JSON, so that ``apply_overrides``
+    on the default config gives ``config`` back."""
+    default = config_to_dict(get_algorithm(algo).default_config())
+
+    def differing(stored: Mapping[str, Any], expected: Mapping[str, Any], prefix: str) -> dict[str, str]:
+        found: dict[str, str] = {}
+        for name, value in stored.items():
+            base = expected.get(name)
+            if isinstance(value, Mapping) and isinstance(base, Mapping):
+                found |= differing(value, base, f"{prefix}{name}.")
+            elif json.dumps(value, sort_keys=True) != json.dumps(base, sort_keys=True) or name not in expected:
+                found[prefix + name] = value if isinstance(value, str) else json.dumps(value)
+        return found
+
+    return differing(config, default, "")
+
+
 def check_config(config: Any, algo: str) -> None:
     """Raise one error listing every value of ``config`` outside its limits."""
     problems = config_problems(config)

@@ -14,13 +14,15 @@ training's cost is mostly its robot's: observations, network inputs and simulati
 A run counts as published when the records the sweep would write for it are in the published
 tree (``<budget>/<method>/<task>/<seed label>/``, the sweep's own layout; RL on source's source
 side too) and are that run: its method, task, seeds, steps and episode count, the dataset it trains
-on and its track. A published record of another run in that folder (another dataset, say) is
+on, its track, and the settings its train command changed from the method's defaults against the
+spec's ``overrides`` (execution-only ones such as ``cuda_graph`` aside). A published record of another run in that folder (another dataset, say) is
 listed, not counted. A hand-edited record is refused, as everywhere the published runs are read.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import shlex
 import statistics
 from collections.abc import Mapping, Sequence
@@ -231,7 +233,40 @@ def _difference(spec: SweepSpec, run: Run, record: dict[str, Any]) -> str:
         differs.append(f"trained on {dataset_label(record)}, the spec's run on {trained_on}")
     if record.get("track") != spec.track:
         differs.append(f"track {record.get('track')!r}, the spec's {spec.track!r}")
+    trained_with, wanted = _result_settings(record.get("train_command")), _result_settings(spec.overrides.get(run.method))
+    if trained_with is not None and trained_with != wanted:
+        differs.append(f"trained with {_settings_text(trained_with)}, the spec's run with {_settings_text(wanted)}")
     return "; ".join(differs)
+
+
+def _result_settings(source: str | Mapping[str, str] | None) -> dict[str, Any] | None:
+    """The settings that decide a run's result, values parsed: from a record's train command (its
+    ``--set`` words) or a spec's overrides; execution-only ones (``cuda_graph``) left out. None for
+    a train command that cannot be read."""
+    from baselines.algorithms import EXECUTION_SETTINGS
+    from offdyn_bench.evaluate import train_command_settings
+
+    if isinstance(source, str):
+        settings = train_command_settings(source)
+    elif source is None:
+        settings = {}
+    else:
+        settings = dict(source)
+    if settings is None:
+        return None
+    return {key: _parsed(value) for key, value in settings.items() if key.split(".")[-1] not in EXECUTION_SETTINGS}
+
+
+def _parsed(value: str) -> Any:
+    try:
+        return json.loads(value)
+    except json.JSONDecodeError:
+        return value
+
+
+def _settings_text(settings: Mapping[str, Any]) -> str:
+    return " ".join(f"--set {key}={value if isinstance(value, str) else json.dumps(value)}"
+                    for key, value in sorted(settings.items())) or "the defaults"
 
 
 def _robot_of(task: str) -> str | None:

@@ -144,11 +144,14 @@ _CLAIMS_NOTE = ("From the published runs above and those of the adapted methods 
                 "the same records): each claim wherever both of its methods have runs on a task. Returns are mean "
                 "target returns over training seeds; the verdict compares the means (at least twice, or more than, "
                 "as the claim says); P is the probability of improvement over seeds. '(not claimed here)' marks a "
-                "task outside the paper's own settings.")
+                "task outside the paper's own settings; a caveat, what a method's trainings were too short for "
+                "(DARC's reward correction starts at step 100,000, the whole lite budget).")
 
 
 def _claim_cells(check: ClaimCheck) -> list[tuple[str, str | float | None]]:
-    claim, verdict = check.claim, check.verdict_text
+    claim = check.claim
+    # A verdict against a training too short to run its method's mechanism says so beside it.
+    verdict = check.verdict_text + "".join(f" (caveat: {caveat})" for caveat in check.caveats)
     task = check.task + ("" if check.claimed_on_task else " (not claimed here)")
     return [(claim.name, claim.name), (claim.paper, claim.paper), (task, task), (check.dataset, check.dataset),
             (f"{claim.better}: {check.better_return:.1f} ({check.better_seeds})", check.better_return),

@@ -23,6 +23,7 @@ import dataclasses
 import hashlib
 import importlib
 import inspect
+import itertools
 import json
 import os
 import pathlib
@@ -103,6 +104,27 @@ def _sha256_arrays(arrays: Sequence[np.ndarray]) -> str:
     return digest.hexdigest()
 
 
+def _settings_of(algo: str, config: Any) -> dict[str, str]:
+    """The run's settings that differ from its method's defaults (its ``--set`` overrides), so that
+    the record's train command trains the same run; none for a config this version cannot read."""
+    from baselines.algorithms import ALGORITHMS, overrides_of
+
+    if algo not in ALGORITHMS or not isinstance(config, dict):
+        return {}
+    return overrides_of(algo, config)
+
+
+def train_command_settings(command: str) -> dict[str, str] | None:
+    """The ``--set key=value`` settings of a record's train command, in order (None where the
+    command cannot be split). Records written before train commands carried them hold none."""
+    try:
+        words = shlex.split(command)
+    except ValueError:
+        return None
+    return {key: value for flag, word in itertools.pairwise(words) if flag == "--set"
+            for key, _, value in [word.partition("=")]}
+
+
 def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
     """One deterministic agent per training seed of a finished ``offdyn-bench train`` run."""
     from baselines.checkpoint import latest_checkpoint, load_checkpoint
@@ -174,6 +196,8 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
                      f"--seed {config['seeds'][0]} --n-seeds {len(config['seeds'])}"
                      + (f" --dataset {config['dataset']}" if config.get("dataset") else "")
                      + (f" --source-dataset {config['source_dataset']}" if config.get("source_dataset") else "")
+                     + "".join(f" --set {shlex.quote(f'{key}={value}')}"
+                               for key, value in _settings_of(config["algo"], config.get("config")).items())
                      + f" --out {run_dir}")
     dataset = result.get("dataset") or config.get("dataset_provenance")
     source_dataset = result.get("source_dataset") or config.get("source_dataset_provenance")

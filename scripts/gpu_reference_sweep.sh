@@ -151,13 +151,26 @@ if [ "${1:-}" = "--prepare" ]; then
   # refused before minutes go into wheels and datasets.
   tasks=$(printf '%s, ' "$@") tasks=${tasks%, }
   device=${DEVICE:-cuda}  # DEVICE=cpu: the same flow checked on a machine without a GPU
-  overrides=""
+  # The reference grid's own settings for the method (DARC's correction from step 10,000 at lite),
+  # so that the lease trains the grid's runs; none at other budgets.
+  settings=""
+  if [ "$budget" = lite ]; then
+    settings=$(.venv/bin/python - "$method" <<'PY'
+import json, sys
+from offdyn_bench.sweep.spec import load_spec
+spec = load_spec("examples/sweeps/reference-lite.yaml")
+print(", ".join(f"{key}: {json.dumps(value)}" for key, value in spec.overrides.get(sys.argv[1], {}).items()))
+PY
+) || exit 2
+  fi
   # The methods with a graph update are those whose config takes cuda_graph (an unknown method
   # takes none here and fails the dry run below, with its own message).
   if [ "$device" = cuda ] && .venv/bin/offdyn-bench train "$method" --print-config --set cuda_graph=true \
       >/dev/null 2>&1; then
-    overrides="overrides: {$method: {cuda_graph: \"true\"}}"
+    settings="${settings:+$settings, }cuda_graph: \"true\""
   fi
+  overrides=""
+  [ -n "$settings" ] && overrides="overrides: {$method: {$settings}}"
   cat > "$spec" <<EOF
 methods: [$method]
 tasks: [$tasks]

@@ -297,3 +297,13 @@ def test_a_run_the_lease_cut_short_comes_back_and_the_next_lease_resumes_it(tmp_
                          / "seeds-0-4" / "result.json").read_text())
     assert result["compute"]["attempts"] == 2  # the cut-short lease's attempt is counted
     assert not list((second / "out").glob("partial.*"))
+
+
+@pytest.mark.slow
+def test_a_lite_lease_trains_the_reference_grids_settings(tmp_path):
+    """DARC at lite: the reference grid's correction from step 10,000 (examples/sweeps/reference-lite.yaml),
+    not the published 100,000 that a lite run never reaches."""
+    prepared = _script("--prepare", "darc", "lite", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu")
+    assert prepared.returncode == 0, prepared.stderr
+    spec = (tmp_path / "device-sweep" / "spec.yaml").read_text()
+    assert 'overrides: {darc: {warmup_steps: "10000"}}' in spec

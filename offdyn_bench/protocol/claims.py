@@ -16,6 +16,12 @@ state their claims; beside it, P(A > B) over training seeds (the Mann-Whitney st
 protocol's aggregate uses) says how clearly the seeds separate. "At least doubles" is a ratio of
 raw returns, as the DAP paper reports them, so it is defined only where RL on source's mean
 return is positive; elsewhere the row says so instead of giving a verdict.
+
+A row also carries what its methods' trainings were too short for (``train``'s budget warnings,
+recomputed from each record's train command: its ``--set`` settings on this version's defaults,
+and its steps). DARC's published schedule starts its reward correction at step 100,000, the whole
+``lite`` budget, so at ``lite`` its runs train SAC on the source alone: a verdict against them is
+not one against DARC's correction, and the row says so.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from offdyn_bench.errors import OffdynError
 from offdyn_bench.protocol.definition import ProtocolError
 from offdyn_bench.protocol.scoring import group_seed_means, single_budget
 
@@ -83,6 +90,8 @@ class ClaimCheck:
     holds: bool | None
     probability_of_improvement: float
     claimed_on_task: bool
+    caveats: tuple[str, ...] = ()
+    """What either method's trainings were too short for (``darc: ...``), from :func:`training_caveats`."""
 
     @property
     def verdict_text(self) -> str:
@@ -96,7 +105,31 @@ class ClaimCheck:
                 "claimed_on_task": self.claimed_on_task, self.claim.better: self.better_return,
                 self.claim.worse: self.worse_return, "seeds": {self.claim.better: self.better_seeds,
                                                                self.claim.worse: self.worse_seeds},
-                "holds": self.holds, "probability_of_improvement": self.probability_of_improvement}
+                "holds": self.holds, "probability_of_improvement": self.probability_of_improvement,
+                "caveats": list(self.caveats)}
+
+
+def training_caveats(record: Mapping[str, Any]) -> tuple[str, ...]:
+    """What the training behind ``record`` was too short for: ``train``'s budget warnings (no
+    update before ``random_steps``, no reward correction before ``warmup_steps``, ...), recomputed
+    from the record's train command (its ``--set`` settings on this version's defaults) and steps,
+    each up to its advice. Empty for a method this version does not know, or a record without a
+    readable train command."""
+    from baselines.algorithms import ALGORITHMS, apply_overrides
+    from baselines.train import budget_warnings
+    from offdyn_bench.evaluate import train_command_settings
+
+    method, command, steps = record.get("method"), record.get("train_command"), record.get("steps")
+    if method not in ALGORITHMS or not isinstance(command, str) or not isinstance(steps, int):
+        return ()
+    settings = train_command_settings(command)
+    if settings is None:
+        return ()
+    try:
+        config = apply_overrides(ALGORITHMS[str(method)].default_config(), settings, str(method))
+    except OffdynError:  # a setting this version does not have: nothing to recompute from
+        return ()
+    return tuple(warning.split("; ")[0] for warning in budget_warnings(str(method), config, steps))
 
 
 def dataset_label(record: Mapping[str, Any]) -> str:
@@ -127,15 +160,20 @@ def check_claims(records: Sequence[Mapping[str, Any]],
         raise ProtocolError("no evaluations to check the claims on")
     returns = _seed_returns(records)
     single_budget(records, "check")
+    caveats: dict[tuple[str, str, str], dict[str, None]] = {}  # (method, task, dataset) -> caveats, in order
+    for record in records:
+        key = (str(record.get("method") or "agent"), str(record["task"]), dataset_label(record))
+        caveats.setdefault(key, {}).update(dict.fromkeys(training_caveats(record)))
     checks = []
     for task in sorted({task for _, task, _ in returns}):
         datasets = sorted({d for _, t, d in returns if t == task and d != NO_DATASET}) or [NO_DATASET]
         for dataset in datasets:
             for claim in claims:
-                sides = []
+                sides, side_caveats = [], []
                 for method in (claim.better, claim.worse):
-                    seeds = returns.get((method, task, dataset)) or returns.get((method, task, NO_DATASET))
-                    sides.append(seeds)
+                    key = (method, task, dataset) if (method, task, dataset) in returns else (method, task, NO_DATASET)
+                    sides.append(returns.get(key))
+                    side_caveats += [f"{method}: {caveat}" for caveat in caveats.get(key, {})]
                 if sides[0] is None or sides[1] is None:
                     continue
                 better = np.array(list(sides[0].values()))
@@ -143,7 +181,8 @@ def check_claims(records: Sequence[Mapping[str, Any]],
                 checks.append(ClaimCheck(
                     claim, task, dataset, float(better.mean()), float(worse.mean()), better.size, worse.size,
                     claim.verdict(float(better.mean()), float(worse.mean())),
-                    probability_of_improvement(better[:, None], worse[:, None]), claim.claimed_on(task)))
+                    probability_of_improvement(better[:, None], worse[:, None]), claim.claimed_on(task),
+                    tuple(side_caveats)))
     return checks
 
 
@@ -170,4 +209,10 @@ def claims_markdown(checks: Sequence[ClaimCheck]) -> str:
         claimed = [c for c in rows if c.claimed_on_task and c.holds is not None]
         lines += ["", f"Where the paper claims it: holds on {sum(bool(c.holds) for c in claimed)} of "
                       f"{len(claimed)} (task, dataset) rows with a verdict.", ""]
+        caveated = [c for c in rows if c.caveats]
+        if caveated:
+            lines += [("What the trainings behind these rows were too short for (the verdict is not about "
+                       "what they never ran):"), ""]
+            lines += [f"- {c.task}, {c.dataset}: {'; '.join(c.caveats)}" for c in caveated]
+            lines.append("")
     return "\n".join(lines).rstrip() + "\n"

@@ -167,6 +167,15 @@ def test_darc_defaults_are_the_published_settings_and_the_h2o_variant_is_named()
     assert variant.classifier == ClassifierConfig() and variant.classifier.hidden_sizes == (256,)
     assert variant.warmup_steps == 10_000 and variant.sac == SACConfig()
     assert SACAgent(3, 4, (0,), variant.sac).target_entropy == -4.0
+    # The variant as --set settings on the published defaults (what a record's train command
+    # carries), and back.
+    from baselines.algorithms import apply_overrides, config_to_dict, overrides_of
+
+    settings = overrides_of("darc", config_to_dict(variant))
+    assert settings == {"classifier.hidden_sizes": "[256]", "classifier.soft_clip_logits": "true",
+                        "warmup_steps": "10000", "sac.reward_scale": "1.0", "sac.target_entropy_per_action_dim": "-1.0"}
+    assert apply_overrides(get_algorithm("darc").default_config(), settings, "darc") == variant
+    assert overrides_of("darc", config_to_dict(published)) == {}
 
 
 def test_raw_logits_are_not_clipped():

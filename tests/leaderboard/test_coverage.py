@@ -115,6 +115,32 @@ def test_a_record_of_another_run_is_listed_not_counted(tmp_path):
     assert why == "trained on offdyn/halfcheetah-friction-5p0/source-policy-v0, the spec's run on collect:random:5000"
 
 
+def test_a_record_trained_with_other_settings_is_another_run(tmp_path):
+    """The reference specs train DARC with its correction from step 10,000 (at lite the published
+    100,000 never comes); the published DARC runs, trained with the defaults, are other runs. A
+    setting that changes how an update runs, not what it computes (cuda_graph), makes none."""
+    root = copy_published(tmp_path, "darc")
+    medium = (H2O_GRAVITY, "medium-v0")
+    corrected = spec_of(tmp_path, methods=["darc"], tasks=[H2O_GRAVITY], datasets=["medium"],
+                        overrides={"darc": {"warmup_steps": 10000}})
+    coverage = reference_coverage(corrected, root)
+    assert coverage.published[("darc", *medium)] == () and len(coverage.others) == 5
+    assert coverage.others[0][1] == "trained with the defaults, the spec's run with --set warmup_steps=10000"
+    assert coverage.skippable == frozenset()  # `sweep --skip-published` trains them again
+
+    # A record whose train command carries the spec's settings is the spec's run, whatever it says
+    # of execution-only ones.
+    for path in (root / "lite" / "darc" / H2O_GRAVITY).glob("medium-v0.seed-*/evaluation.json"):
+        record = json.loads(path.read_text())
+        record["train_command"] = record["train_command"].replace(
+            " --out", " --set warmup_steps=10000 --set cuda_graph=true --out")
+        path.write_text(json.dumps(record))
+    assert reference_coverage(corrected, root).published[("darc", *medium)] == (0, 1, 2, 3, 4)
+    defaults = spec_of(tmp_path, methods=["darc"], tasks=[H2O_GRAVITY], datasets=["medium"])
+    why = reference_coverage(defaults, root).others[0][1]
+    assert why == "trained with --set warmup_steps=10000, the spec's run with the defaults"
+
+
 def test_a_hand_edited_record_is_refused(tmp_path):
     root = copy_published(tmp_path, "dap")
     edited = root / "lite" / "dap" / "halfcheetah-friction-5.0" / "seed-1" / "evaluation.json"

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from offdyn_bench.cli import app
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.protocol import ProtocolError
-from offdyn_bench.protocol.claims import PAPER_CLAIMS, check_claims, claims_markdown
+from offdyn_bench.protocol.claims import PAPER_CLAIMS, check_claims, claims_markdown, training_caveats
 
 HOPPER = "hopper-gravity-0.5"
 CHEETAH_H2O = "halfcheetah-h2o-gravity-2.0"
@@ -77,6 +77,31 @@ def test_h2o_claims_are_checked_per_dataset_and_only_claimed_on_the_halfcheetah_
     text = claims_markdown(checks)
     assert "| hopper-gravity-0.5 (not claimed here) | x |" in text
     assert "holds on 1 of 2 (task, dataset) rows" in text  # the Hopper row is not counted
+
+
+def test_a_verdict_against_a_training_too_short_for_its_method_says_so():
+    """DARC's published schedule starts its reward correction at step 100,000: at lite (100,000
+    steps) the runs never apply it, so "H2O beats DARC" there is a verdict against SAC on the
+    source; the row says so. The same runs with the correction from step 10,000 carry no caveat."""
+    medium = "offdyn/halfcheetah-h2o-gravity-2p0/medium-v0"
+    h2o = record("h2o", CHEETAH_H2O, {0: [500.0]}, dataset=medium) | {"steps": 100_000}
+    command = f"offdyn-bench train darc --task {CHEETAH_H2O} --steps 100000 --seed 0 --n-seeds 1 --out runs/darc"
+    darc = record("darc", CHEETAH_H2O, {0: [400.0]}, dataset=medium) | {"steps": 100_000, "train_command": command}
+    assert training_caveats(h2o) == ()  # no train command: nothing to recompute
+    assert training_caveats(darc) == (("--steps 100000 is not above warmup_steps=100000: this darc run never "
+                                       "applies its reward correction and trains plain SAC"),)
+    [check] = by_claim(check_claims([h2o, darc]), "h2o > darc", CHEETAH_H2O)
+    assert check.holds and check.caveats == ("darc: " + training_caveats(darc)[0],)
+    assert check.to_dict()["caveats"] == list(check.caveats)
+    text = claims_markdown([check])
+    assert f"- {CHEETAH_H2O}, {medium}: darc: --steps 100000 is not above warmup_steps=100000" in text
+
+    shorter = darc | {"train_command": command.replace(" --out", " --set warmup_steps=10000 --out")}
+    [check] = by_claim(check_claims([h2o, shorter]), "h2o > darc", CHEETAH_H2O)
+    assert check.caveats == () and "too short" not in claims_markdown([check])
+    # A method this version does not know, or a setting it does not have: nothing is claimed of it.
+    assert training_caveats(darc | {"method": "my-method"}) == ()
+    assert training_caveats(darc | {"train_command": command + " --set no_such_setting=1"}) == ()
 
 
 def test_a_sweeps_per_seed_records_merge_and_a_seed_twice_is_refused():

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import shlex
+import subprocess
 import sys
 import textwrap
 
@@ -13,7 +15,7 @@ from typer.testing import CliRunner
 from baselines.train import train
 from offdyn_bench.cli import app
 from offdyn_bench.errors import OffdynError
-from offdyn_bench.evaluate import EvaluationError, evaluate, read_evaluation
+from offdyn_bench.evaluate import EvaluationError, evaluate, read_evaluation, train_command_settings
 from offdyn_bench.protocol import EPISODE_SEEDS, PROTOCOL_VERSION, ProtocolError
 from offdyn_bench.protocol.report import score_report
 from offdyn_bench.protocol.statistics import iqm
@@ -81,6 +83,22 @@ def test_a_run_folder_is_evaluated_per_training_seed(finished_run):
     assert read_evaluation(finished_run / "evaluation.json") == json.loads(json.dumps(record))
     # Deterministic: the same run gives the same returns.
     assert evaluate(finished_run, progress=False, out=finished_run / "again.json")["seeds"] == record["seeds"]
+
+
+def test_the_records_train_command_trains_the_same_policy(finished_run, tmp_path):
+    """The record's train command carries the settings the run changed from its method's defaults
+    (``--set``), so running it trains the same policies; without them it would train another run."""
+    record = evaluate(finished_run, progress=False, out=tmp_path / "record.json")
+    words = shlex.split(record["train_command"])
+    settings = train_command_settings(record["train_command"])
+    assert settings == TINY  # the fixture's settings, and nothing else
+    again = tmp_path / "again"
+    words[words.index("--out") + 1] = str(again)
+    subprocess.run([sys.executable, "-m", "offdyn_bench", *words[1:], "--eval-episodes", "1", "--no-progress"],
+                   check=True, capture_output=True, timeout=300)
+    retrained = evaluate(again, progress=False, out=tmp_path / "again.json")
+    assert retrained["agent"]["policy_sha256"] == record["agent"]["policy_sha256"]
+    assert retrained["train_command"] == record["train_command"].replace(str(finished_run), str(again))
 
 
 def test_the_source_side_gives_the_gap_and_is_no_protocol_result(finished_run, tmp_path):
