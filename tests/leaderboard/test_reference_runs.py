@@ -681,6 +681,8 @@ def test_a_stored_reference_submission_is_what_its_published_runs_assemble_to(pa
 # the worse), holds, the better side's return, the worse side's, P(better > worse)). "Better" is the
 # side the paper says wins. The H2O rows are Table 1's `medium` cells.
 _DOUBLES, _DAP_U = "dap >= 2x rl-on-source", "dap-u > dap"
+_DARC_NEVER_CORRECTS = ("darc: --steps 100000 is not above warmup_steps=100000: this darc run never applies its "
+                        "reward correction and trains plain SAC")
 _PUBLISHED_CLAIMS = {
     (_DOUBLES, "halfcheetah-friction-5.0", "source-policy"): ((5, 5), False, 1147.9, 979.6, 0.68),  # 1.17 times
     (_DOUBLES, "walker2d-morph-leg-medium", "source-policy"): ((5, 5), False, 470.6, 353.5, 0.80),  # 1.33 times
@@ -736,6 +738,9 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
         assert check.probability_of_improvement == (
             probability if probability == 1.0 else pytest.approx(probability, abs=0.005)), (name, task)
         assert check.claimed_on_task, (name, task)  # each row is where its paper makes the claim
+        # The published DARC runs keep DARC's published schedule: at lite its correction never
+        # starts, and each verdict against them says so (PROTOCOL §9, decision 5).
+        assert check.caveats == ((_DARC_NEVER_CORRECTS,) if name == "h2o > darc" else ()), (name, task)
     store = tmp_path / "store"
     store.mkdir()
     markdown, page = build_site(store, tmp_path / "site", reference_runs=REFERENCE_RUNS_DIR)
