@@ -15,8 +15,9 @@ A run counts as published when the records the sweep would write for it are in t
 tree (``<budget>/<method>/<task>/<seed label>/``, the sweep's own layout; RL on source's source
 side too) and are that run: its method, task, seeds, steps and episode count, the dataset it trains
 on, its track, and the settings its train command changed from the method's defaults against the
-spec's ``overrides`` (execution-only ones such as ``cuda_graph`` aside). A published record of another run in that folder (another dataset, say) is
-listed, not counted. A hand-edited record is refused, as everywhere the published runs are read.
+spec's ``overrides`` (execution-only ones such as ``cuda_graph`` aside). A published record of
+another run in that folder (another dataset, say) is listed, not counted. A hand-edited record is
+refused, as everywhere the published runs are read.
 """
 
 from __future__ import annotations
@@ -233,7 +234,8 @@ def _difference(spec: SweepSpec, run: Run, record: dict[str, Any]) -> str:
         differs.append(f"trained on {dataset_label(record)}, the spec's run on {trained_on}")
     if record.get("track") != spec.track:
         differs.append(f"track {record.get('track')!r}, the spec's {spec.track!r}")
-    trained_with, wanted = _result_settings(record.get("train_command")), _result_settings(spec.overrides.get(run.method))
+    trained_with = _result_settings(record.get("train_command"))
+    wanted = _result_settings(spec.overrides.get(run.method))
     if trained_with is not None and trained_with != wanted:
         differs.append(f"trained with {_settings_text(trained_with)}, the spec's run with {_settings_text(wanted)}")
     return "; ".join(differs)
