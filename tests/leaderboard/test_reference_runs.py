@@ -752,6 +752,34 @@ def test_the_boards_claims_are_protocol_claims_on_the_published_runs(tmp_path):
     assert 'id="reference-claims-lite"' in page.read_text()
 
 
+def test_the_board_marks_a_verdict_against_darc_runs_that_never_applied_their_correction(tmp_path):
+    """No published DARC run is the published schedule's any more, so the board's caveat is checked
+    on a copy of the H2O gravity cell whose DARC train commands are rewritten to that schedule: at
+    lite its correction would start at step 100,000, the end of the run, and the verdict says so in
+    both the markdown and the page."""
+    from leaderboard.render import build_site
+
+    published = tmp_path / "published"
+    for method in ("h2o", "darc"):
+        cell = Path("lite", method, "halfcheetah-h2o-gravity-2.0")
+        shutil.copytree(REFERENCE_RUNS_DIR / cell, published / cell)
+    darc_records = sorted((published / "lite" / "darc").glob("*/medium-v0.seed-*/evaluation.json"))
+    assert len(darc_records) == 5
+    for path in darc_records:
+        record = json.loads(path.read_text())
+        assert " --set warmup_steps=10000" in record["train_command"]
+        record["train_command"] = re.sub(r" --set \S+", "", record["train_command"])
+        path.write_text(json.dumps(record))
+    store = tmp_path / "store"
+    store.mkdir()
+    markdown, page = build_site(store, tmp_path / "site", reference_runs=published)
+    caveat = ("holds (caveat: darc: --steps 100000 is not above warmup_steps=100000: this darc run never applies "
+              "its reward correction and trains plain SAC)")
+    assert "| halfcheetah-h2o-gravity-2.0 | offdyn/halfcheetah-h2o-gravity-2p0/medium-v0 |" in markdown.read_text()
+    assert caveat in markdown.read_text()
+    assert caveat in page.read_text()
+
+
 def test_the_boards_claims_refuse_a_hand_edited_record(tmp_path):
     from leaderboard.reference_runs import reference_claims
 
