@@ -712,8 +712,10 @@ _PUBLISHED_CLAIMS = {
     ("h2o > cql", "hopper-kinematic-foot-medium", "source-policy"): ((5, 5), False, 555.2, 580.1, 0.40),
     # Five seeds each on friction; no CQL run there yet, so no "h2o > cql" row.
     ("h2o > darc", "hopper-friction-0.5", "source-policy"): ((5, 5), True, 737.6, 597.3, 0.60),
-    # H2O's first three seeds on morph-thigh (held on seed 0 alone); no CQL run there yet.
+    # Five seeds on morph-thigh (it held on seed 0 alone); no CQL run there yet.
     ("h2o > darc", "hopper-morph-thigh-medium", "source-policy"): ((5, 5), False, 544.2, 836.5, 0.36),
+    # H2O's first two seeds on joint noise: nine of the ten seed pairs favour H2O; no CQL run there yet.
+    ("h2o > darc", "hopper-joint-noise-0.5", "source-policy"): ((2, 5), True, 937.0, 744.5, 0.90),
 }
 # The H2O paper claims its rows on Table 1's HalfCheetah settings only; every other H2O row is "not
 # claimed here", so a newly published pair needs no entry.
