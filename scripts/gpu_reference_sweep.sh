@@ -208,6 +208,15 @@ EOF
       exit 2
     fi
   done
+  if [ -n "${RESUME_FROM:-}" ]; then
+    # Runs an earlier lease cut short (its partial.*.tar files) resume here from their checkpoints;
+    # checked before the wheels and datasets, so a wrong folder costs no time.
+    archives=("$RESUME_FROM"/partial.*.tar)
+    [ -f "${archives[0]}" ] || { echo "error: RESUME_FROM=$RESUME_FROM holds no partial.*.tar (what a lease call brings back)" >&2; exit 2; }
+    .venv/bin/python scripts/pack_unfinished_runs.py --check "$spec" "${archives[@]}" || exit 2
+    mkdir -p "$dir/partial$sfx" && cp "${archives[@]}" "$dir/partial$sfx/"
+    echo "resumes: $(basename -a "${archives[@]}" | tr '\n' ' ')"
+  fi
   # SKIP_WHEELS=1: no wheels (a check of this script where the packages are installed).
   # An added group's payload holds its datasets only: the first group's wheels serve every group.
   [ "${SKIP_WHEELS:-0}" = 1 ] || [ "$group" != 1 ] || bash scripts/device_wheels.sh "$dir/wheels"
@@ -221,14 +230,6 @@ EOF
       cp -r "${MINARI_DATASETS_PATH:-$HOME/.minari/datasets}/$dataset" "$dir/datasets/$(dirname "$dataset")/"
     done
   done
-  if [ -n "${RESUME_FROM:-}" ]; then
-    # Runs an earlier lease cut short (its partial.*.tar files) resume here from their checkpoints.
-    archives=("$RESUME_FROM"/partial.*.tar)
-    [ -f "${archives[0]}" ] || { echo "error: RESUME_FROM=$RESUME_FROM holds no partial.*.tar (what a lease call brings back)" >&2; exit 2; }
-    .venv/bin/python scripts/pack_unfinished_runs.py --check "$spec" "${archives[@]}" || exit 2
-    mkdir -p "$dir/partial$sfx" && cp "${archives[@]}" "$dir/partial$sfx/"
-    echo "resumes: $(basename -a "${archives[@]}" | tr '\n' ' ')"
-  fi
   echo "$n_runs" > "$dir/workers$sfx"
   all_runs=$(( $(cat "$dir"/workers* | paste -sd+) ))
   if [ "$budget" = lite ] && [ "$all_runs" -gt 2 ] && grep -q '^methods: \[cql\]$' "$dir"/spec*.yaml; then

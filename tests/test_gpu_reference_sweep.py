@@ -31,6 +31,14 @@ def _script(*args: str, tmp_path: Path, **env: str) -> subprocess.CompletedProce
                           timeout=900)
 
 
+@pytest.fixture(scope="module")
+def rebuilt_datasets(tmp_path_factory) -> dict[str, str]:
+    """One Minari root for the prepares that get as far as the datasets: each task's dataset is
+    rebuilt from its recipe (and checked against the manifest) once for the module, not per test.
+    Checks that something is refused before any dataset keep their own, empty, root."""
+    return {"MINARI_DATASETS_PATH": str(tmp_path_factory.mktemp("minari"))}
+
+
 @pytest.mark.parametrize(("args", "message"), [
     (["--prepare", "cql"], "usage: "),
     (["--prepare", "cql", "ten", "hopper-gravity-0.5"], "error: budget ten: expected lite or a number of steps"),
@@ -86,11 +94,11 @@ def test_running_without_a_prepared_folder_is_refused(tmp_path):
     assert result.returncode == 2 and "run --prepare here first" in result.stderr
 
 
-def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_path):
+def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_path, rebuilt_datasets):
     # Pairs outside the core suite: the reference grid publishes no CQL run of them, so at lite
     # they stay preparable however far the grid gets.
     tasks = ["hopper-gravity-5.0", "hopper-friction-5.0", "hopper-kinematic-thigh-medium"]
-    prepared = _script("--prepare", "cql", "lite", *tasks, tmp_path=tmp_path, DEVICE="cpu")
+    prepared = _script("--prepare", "cql", "lite", *tasks, tmp_path=tmp_path, DEVICE="cpu", **rebuilt_datasets)
     assert prepared.returncode == 0, prepared.stderr
     assert "note: 3 lite runs, CQL among them: the measured lease would finish about two lite CQL runs" in prepared.stderr
     assert f"tasks: [{', '.join(tasks)}]" in (tmp_path / "device-sweep" / "spec.yaml").read_text()
@@ -99,10 +107,12 @@ def test_more_lite_cql_tasks_than_a_lease_finishes_are_prepared_with_a_note(tmp_
 
 
 @pytest.mark.parametrize("method", ["cql", "sac-target", "darc"])
-def test_a_cuda_sweep_replays_the_graph_update_for_exactly_the_methods_whose_config_has_it(method, tmp_path):
+def test_a_cuda_sweep_replays_the_graph_update_for_exactly_the_methods_whose_config_has_it(method, tmp_path,
+                                                                                           rebuilt_datasets):
     from baselines.algorithms import get_algorithm
 
-    prepared = _script("--prepare", method, "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cuda")
+    prepared = _script("--prepare", method, "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cuda",
+                       **rebuilt_datasets)
     assert prepared.returncode == 0, prepared.stderr
     spec = (tmp_path / "device-sweep" / "spec.yaml").read_text()
     has_graph = hasattr(get_algorithm(method).default_config(), "cuda_graph")
@@ -110,13 +120,13 @@ def test_a_cuda_sweep_replays_the_graph_update_for_exactly_the_methods_whose_con
     assert (f'overrides: {{{method}: {{cuda_graph: "true"}}}}' in spec) == has_graph, spec
 
 
-def test_an_added_group_needs_a_prepared_folder_and_trains_no_cell_another_group_trains(tmp_path):
+def test_an_added_group_needs_a_prepared_folder_and_trains_no_cell_another_group_trains(tmp_path, rebuilt_datasets):
     alone = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu", ADD="1")
     assert alone.returncode == 2
     assert "error: ADD=1: no prepared " in alone.stderr and "prepare the first group without ADD" in alone.stderr
     assert not any(tmp_path.glob("device-sweep*"))
 
-    first = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu")
+    first = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu", **rebuilt_datasets)
     assert first.returncode == 0, first.stderr
     prepared = sorted(path.name for path in (tmp_path / "device-sweep").iterdir())
     # Other seeds of the same cell in a second group: the lease could not publish both runs.
@@ -249,11 +259,13 @@ def test_resuming_what_a_lease_did_not_finish_refuses_what_is_not_the_specs(tmp_
     nothing = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu",
                       RESUME_FROM=str(tmp_path / "empty"))
     assert nothing.returncode == 2 and "holds no partial.*.tar (what a lease call brings back)" in nothing.stderr
+    assert "rebuilding it from its recipe" not in nothing.stderr  # refused before any dataset
     other = _script("--prepare", "cql", "40", "hopper-gravity-0.5", tmp_path=tmp_path, DEVICE="cpu",
                     RESUME_FROM=str(_partial_of_another_run(tmp_path)))
     assert other.returncode == 2
     assert ("error: partial.sac-source.invertedpendulum-gravity-3.0.seed-0.tar holds "
             "sac-source/invertedpendulum-gravity-3.0/seed-0, not a run of ") in other.stderr
+    assert "rebuilding it from its recipe" not in other.stderr
     assert not any(tmp_path.glob("device-sweep*"))
 
 

@@ -49,9 +49,10 @@ def attempt_headers():
     return _attempt_headers
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def finished_sweep(tmp_path_factory):
-    """A tiny sweep run once with the local backend (2 runs, 2 workers), shared by a module's tests."""
+    """A tiny sweep run once with the local backend (2 runs, 2 workers), shared by the session's
+    tests: they read it, and whatever runs it again or writes into it works on a copy."""
     from offdyn_bench.sweep import parse_spec
     from offdyn_bench.sweep.driver import run_sweep
 

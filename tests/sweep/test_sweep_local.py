@@ -67,17 +67,25 @@ def test_the_summary_names_the_claims_command_once_two_methods_are_done(finished
     assert line.endswith(f"offdyn-bench protocol claims {report.spec.out}/runs/*/*/*/evaluation.json")
 
 
-def test_running_the_same_sweep_again_launches_nothing(finished_sweep, monkeypatch):
-    out = finished_sweep.spec.out
-    before = {run.run_id: (run.folder / "evaluation.json").stat().st_mtime_ns for run in finished_sweep.runs}
-    logs = {run.run_id: run.log.read_text() for run in finished_sweep.runs}
+def test_running_the_same_sweep_again_launches_nothing(finished_sweep, tmp_path, monkeypatch):
+    import shutil
+
+    # On a copy: the finished sweep is shared with other modules' tests, which read its state file.
+    out = tmp_path / "copy"
+    shutil.copytree(finished_sweep.spec.out, out)
+    data = finished_sweep.spec.to_dict()
+    spec = parse_spec({key: data[key] for key in ("methods", "tasks", "seeds", "track", "steps", "evaluation_episodes",
+                                                  "training", "overrides", "max_retries")} | {"out": str(out)})
+    runs = expand(spec)
+    before = {run.run_id: (run.folder / "evaluation.json").stat().st_mtime_ns for run in runs}
+    logs = {run.run_id: run.log.read_text() for run in runs}
 
     def no_subprocess(*args, **kwargs):
         raise AssertionError(f"a subprocess was started: {args}")
 
     monkeypatch.setattr("offdyn_bench.sweep.execute.subprocess.Popen", no_subprocess)
     lines = []
-    again = run_sweep(finished_sweep.spec, workers=2, echo=lines.append)
+    again = run_sweep(spec, workers=2, echo=lines.append)
     assert again.launched == 0 and not again.failed
     assert lines == [f"sweep: 2 runs under {out} (2 already evaluated, 0 to run)"]
     for run in again.runs:
