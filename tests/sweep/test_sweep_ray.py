@@ -62,10 +62,6 @@ def _parent_of(pid: int) -> int:
     raise AssertionError(f"no parent of {pid}")
 
 
-# Slow (about 35 s): three 1000-step runs. The default run keeps the same recovery on the local
-# backend (tests/sweep/test_sweep_local.py, a train subprocess killed mid-run) and the Ray backend's
-# tiny sweep above; this adds Ray's own retry of a lost worker.
-@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds the Ray worker through /proc")
 def test_a_ray_worker_killed_mid_run_loses_no_finished_result_and_the_sweep_completes(
         tmp_path, tiny_spec, local_ray, train_process_of, wait_for, attempt_headers):
