@@ -16,11 +16,13 @@ STEPS = 1000
 FAST = DiagnosisSettings(screen_rows=400, fit_rows=700)
 
 
+# The single dead zone, mass and gear cases run in `make test-slow`: the default run finds each of
+# those kinds elsewhere (a dead zone beside a heavier torso below; a weaker motor in four checks).
 @pytest.mark.parametrize(
     ("hidden", "expected"),
     [
         pytest.param([{"kind": "action_deadzone", "target": "thigh_joint", "threshold": 0.3}],
-                     [("action_deadzone", "thigh_joint", 0.3)], id="deadzone-one-actuator"),
+                     [("action_deadzone", "thigh_joint", 0.3)], id="deadzone-one-actuator", marks=pytest.mark.slow),
         pytest.param([{"kind": "frictionloss", "target": "leg_joint", "value": 8.0},
                       {"kind": "frictionloss", "target": "foot_joint", "value": 5.0}],
                      [("frictionloss", "leg_joint", 8.0), ("frictionloss", "foot_joint", 5.0)],
@@ -28,9 +30,9 @@ FAST = DiagnosisSettings(screen_rows=400, fit_rows=700)
         pytest.param([{"kind": "action_delay", "target": None, "steps": 1}],
                      [("action_delay", None, 1)], id="one-step-action-delay"),
         pytest.param([{"kind": "mass", "target": "leg", "scale": 1.5}],
-                     [("mass", "leg", 1.5)], id="heavier-body"),
+                     [("mass", "leg", 1.5)], id="heavier-body", marks=pytest.mark.slow),
         pytest.param([{"kind": "gear", "target": "foot_joint", "scale": 0.6}],
-                     [("gear", "foot_joint", 0.6)], id="weaker-actuator"),
+                     [("gear", "foot_joint", 0.6)], id="weaker-actuator", marks=pytest.mark.slow),
         pytest.param([{"kind": "action_deadzone", "target": "leg_joint", "threshold": 0.25},
                       {"kind": "mass", "target": "torso", "scale": 1.3}],
                      [("action_deadzone", "leg_joint", 0.25), ("mass", "torso", 1.3)], id="two-effects"),
