@@ -68,14 +68,13 @@ def test_the_summary_names_the_claims_command_once_two_methods_are_done(finished
 
 
 def test_running_the_same_sweep_again_launches_nothing(finished_sweep, tmp_path, monkeypatch):
+    import dataclasses
     import shutil
 
     # On a copy: the finished sweep is shared with other modules' tests, which read its state file.
     out = tmp_path / "copy"
     shutil.copytree(finished_sweep.spec.out, out)
-    data = finished_sweep.spec.to_dict()
-    spec = parse_spec({key: data[key] for key in ("methods", "tasks", "seeds", "track", "steps", "evaluation_episodes",
-                                                  "training", "overrides", "max_retries")} | {"out": str(out)})
+    spec = dataclasses.replace(finished_sweep.spec, out=out)
     runs = expand(spec)
     before = {run.run_id: (run.folder / "evaluation.json").stat().st_mtime_ns for run in runs}
     logs = {run.run_id: run.log.read_text() for run in runs}
