@@ -19,11 +19,16 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/offdyn-bench demo
 
+# One pytest-xdist worker per core, at most 4 (each holds torch and MuJoCo; more would mostly add
+# memory). worksteal: a worker that runs out takes queued tests from the other, so one long module
+# does not leave a core idle at the end (on 2 cores it beat --dist load and loadscope; README).
+PARALLEL := -n auto --maxprocesses 4 --dist worksteal
+
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(PARALLEL)
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -m slow
+	$(PY) -m pytest -q -m slow $(PARALLEL)
 
 # Speed figures quoted in the README: each measures the suite against its reference in one run.
 bench: $(STAMP)

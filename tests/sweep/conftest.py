@@ -52,7 +52,8 @@ def attempt_headers():
 @pytest.fixture(scope="session")
 def finished_sweep(tmp_path_factory):
     """A tiny sweep run once with the local backend (2 runs, 2 workers), shared by the session's
-    tests: they read it, and whatever runs it again or writes into it works on a copy."""
+    tests (once per pytest-xdist worker that runs one of them): they read it, and whatever runs it
+    again or writes into it works on a copy."""
     from offdyn_bench.sweep import parse_spec
     from offdyn_bench.sweep.driver import run_sweep
 
