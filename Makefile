@@ -22,8 +22,8 @@ demo: $(STAMP)
 # The default run: one pytest-xdist worker per core, at most 4 (each holds torch and MuJoCo;
 # more would mostly add memory). worksteal: a worker that runs out takes queued tests from the
 # other, so one long module does not leave a core idle at the end (on 2 idle cores 770 s, against
-# 912 s with --dist loadgroup). make test-slow stays in one process: its long trainings were not
-# checked side by side.
+# 912 s for --dist loadgroup with the Ray modules and the finished-sweep readers each grouped on one
+# worker). make test-slow stays in one process: its long trainings were not run under xdist.
 PARALLEL := -n auto --maxprocesses 4 --dist worksteal
 
 test: $(STAMP)
