@@ -14,7 +14,10 @@
   training's wall and CPU seconds over all its attempts (:class:`baselines.run_folder.TrainingCompute`),
   and ``machines``: the distinct machines its attempts ran on (:func:`offdyn_bench.versions.machine`;
   a ``null`` entry stands for attempts before checkpoints recorded them), since the same seed trains
-  another policy on another CPU model;
+  another policy on another CPU model; ``source_revisions``: likewise the suite's code revisions
+  (:func:`offdyn_bench.versions.source_revision`, ``null`` where unknown); and ``started_at`` /
+  ``finished_at``: the UTC times the first attempt started and the last one finished (CPU seconds
+  measured on different days of one machine can differ: PROTOCOL §9);
 * ``.lock`` -- locked while a process trains in the folder, so a second one is refused.
 
 Every argument and config value is checked before anything is written, so bad input leaves no
@@ -65,7 +68,7 @@ from offdyn_bench.errors import OffdynError
 from offdyn_bench.protocol.definition import ProtocolError
 from offdyn_bench.protocol.training import resolve_run
 from offdyn_bench.tasks import TaskPair, get_task
-from offdyn_bench.versions import machine, versions
+from offdyn_bench.versions import machine, source_revision, utc_now, versions
 
 EVAL_SEED = 1_000_000
 """Evaluation episode e is reset with seed EVAL_SEED + e, for every method and training seed."""
@@ -203,7 +206,9 @@ def train(algo: str, task: str, *, steps: int | None = None, out: str | Path, se
                   "mean_return": float(final_returns.mean()), "versions": versions(),
                   "config": settings["config"], "warnings": warnings, "track": plan.track, "budget": plan.budget,
                   "target_steps_per_seed": loop.target_steps_taken(steps), "device": device,
-                  "compute": loop.clock.now().to_dict(), "machines": loop.machines}
+                  "compute": loop.clock.now().to_dict(), "machines": loop.machines,
+                  "source_revisions": loop.source_revisions, "started_at": loop.started_at,
+                  "finished_at": utc_now()}
         if source_provenance is not None:
             result["source_dataset"] = source_provenance
         write_json_atomic(out / RESULT_FILE, result)
@@ -400,6 +405,12 @@ class _Loop:
         self.machines: list[dict[str, Any] | None] = [machine(device)]
         """The distinct machines of this training's attempts, in order (None: attempts before
         checkpoints recorded them)."""
+        self.source_revisions: list[dict[str, Any] | None] = [source_revision()]
+        """The distinct revisions of the suite's code its attempts ran (None: unknown, or attempts
+        before checkpoints recorded them)."""
+        self.started_at: str | None = utc_now()
+        """When the first attempt started (UTC); None for a run resumed from a checkpoint that does
+        not say."""
 
     def step(self, step: int) -> dict[str, torch.Tensor]:
         method = self.method
@@ -471,7 +482,8 @@ class _Loop:
         trainer = {"step": step,
                    "train_episodes": self.train_envs.episodes if self.train_envs else None,
                    "target_episodes": self.target_envs.episodes if self.target_envs else None,
-                   "compute": self.clock.now().to_dict(), "machines": self.machines}
+                   "compute": self.clock.now().to_dict(), "machines": self.machines,
+                   "source_revisions": self.source_revisions, "started_at": self.started_at}
         save_checkpoint(self.out, step, self.method.state_dict(), trainer)
 
     def restore(self) -> tuple[int, list[str]]:
@@ -529,6 +541,12 @@ class _Loop:
         earlier = ([m if isinstance(m, dict) else None for m in earlier] if isinstance(earlier, list) else [None])
         current = machine(str(self.device))
         self.machines = earlier + ([current] if current not in earlier else [])
+        earlier = trainer.get("source_revisions")
+        earlier = ([r if isinstance(r, dict) else None for r in earlier] if isinstance(earlier, list) else [None])
+        current = source_revision()
+        self.source_revisions = earlier + ([current] if current not in earlier else [])
+        started_at = trainer.get("started_at")
+        self.started_at = started_at if isinstance(started_at, str) else None
         return checkpoint_step(path)
 
 

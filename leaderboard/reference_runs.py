@@ -238,9 +238,10 @@ def _refuse_seeds_published_twice(records: Sequence[tuple[Path, Path, dict[str, 
 
 
 # Where a run ran, not what it measured: a record's own command and its training's (both name the
-# run's folder), the machines of its evaluation and training, and the agent's folder; a curve
-# line's timings.
-_RECORD_LOCATION_FIELDS = ("command", "train_command", "machine", "training_machines")
+# run's folder), the machines of its evaluation and training, the code revisions and dates they ran
+# at, and the agent's folder; a curve line's timings.
+_RECORD_LOCATION_FIELDS = ("command", "train_command", "machine", "training_machines", "source_revision",
+                           "training_provenance")
 _CURVE_TIMING_FIELDS = ("wall_time_s", "cpu_time_s")
 
 
@@ -273,7 +274,7 @@ def _record_without_location(record: Any) -> Any:
 
 
 COMPUTE_FILE = "compute.json"
-_ATTEMPT_FIELDS = ("attempt", "ok", "stage", "wall_time_s", "cpu_time_s", "host")
+_ATTEMPT_FIELDS = ("attempt", "ok", "stage", "started_at", "wall_time_s", "cpu_time_s", "host")
 
 
 def _check_destination(dest: Path) -> None:

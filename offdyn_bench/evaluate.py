@@ -94,6 +94,10 @@ class LoadedAgents:
     training_machines: list[Any] | None = None
     """The machines a run's training ran on (its ``result.json``); None for a user's agent and for
     runs trained before results recorded them."""
+    training_provenance: dict[str, Any] | None = None
+    """When a run trained and from which code (its ``result.json``: ``source_revisions``,
+    ``started_at``, ``finished_at``); None for a user's agent and for runs trained before results
+    recorded them."""
 
 
 def _sha256_arrays(arrays: Sequence[np.ndarray]) -> str:
@@ -202,9 +206,11 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
     dataset = result.get("dataset") or config.get("dataset_provenance")
     source_dataset = result.get("source_dataset") or config.get("source_dataset_provenance")
     machines = result.get("machines")
+    provenance = {key: result[key] for key in ("source_revisions", "started_at", "finished_at") if key in result}
     return LoadedAgents(agents=agents, method=config["algo"], task=pair.name, steps=int(config["steps"]),
                         dataset=dataset, train_command=train_command, source_dataset=source_dataset,
                         training_machines=machines if isinstance(machines, list) else None,
+                        training_provenance=provenance or None,
                         description={"kind": "run", "path": str(run_dir), "checkpoint": checkpoint.name,
                                      "policy_sha256": hashes,
                                      # The command above omits --set overrides: config.json holds
@@ -364,7 +370,7 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
     from tqdm import tqdm
 
     from offdyn_bench.tasks import get_task
-    from offdyn_bench.versions import machine, versions
+    from offdyn_bench.versions import machine, source_revision, versions
 
     if not 1 <= episodes <= len(EPISODE_SEEDS) * 50:
         raise EvaluationError(f"episodes={episodes}; expected an integer in [1, {len(EPISODE_SEEDS) * 50}]")
@@ -435,6 +441,8 @@ def evaluate(agent: str | os.PathLike[str], task: str | None = None, *, track: s
         "versions": versions(),
         # Where the numbers were computed: another CPU model can train, and act, differently (PROTOCOL §8).
         "machine": machine(), "training_machines": loaded.training_machines,
+        # The code that evaluated and the code (and dates) that trained: the version stays 0.1.0.
+        "source_revision": source_revision(), "training_provenance": loaded.training_provenance,
         "command": "offdyn-bench evaluate " + shlex.join(_command_args(agent, task, track, budget, episodes, side)),
     }
     if loaded.source_dataset is not None:  # offline-source runs only: other records keep their keys

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import datetime
 import os
 import platform
+import subprocess
 from importlib import metadata
+from pathlib import Path
 from typing import Any
 
 __version__ = "0.1.0"
@@ -34,6 +37,40 @@ def versions() -> dict[str, str | None]:
         "numpy": _installed("numpy"),
         "python": platform.python_version(),
     }
+
+
+def source_revision() -> dict[str, Any] | None:
+    """The git commit of the suite's own code, when it runs from a git checkout: ``{"commit": <sha>,
+    "modified": <whether tracked files differ from it>}``. None when the code is installed from a
+    package (it has no git work tree of its own), or git is missing or fails: "unknown", never a guess.
+
+    The package version stays 0.1.0 between releases, so only the commit says which code trained a
+    published number."""
+    package = Path(__file__).resolve().parent
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(package), *args], capture_output=True, text=True, timeout=30,
+                                  check=False)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    top = git("rev-parse", "--show-toplevel")
+    # A copy installed into a virtual environment inside some repository is not that repository's
+    # code: the package must sit at the top of the work tree that git finds.
+    if top is None or Path(top).resolve() / package.name != package:
+        return None
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no")
+    if commit is None or status is None:
+        return None
+    return {"commit": commit, "modified": bool(status)}
+
+
+def utc_now() -> str:
+    """The current time in UTC, to the second (ISO 8601): when a record's numbers were computed."""
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
 
 # Instruction sets whose presence changes which kernels MKL, OpenBLAS, oneDNN and ATen pick, and

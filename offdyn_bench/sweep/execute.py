@@ -31,6 +31,7 @@ from offdyn_bench.sweep.runs import (
     mean_return,
     settings_conflict,
 )
+from offdyn_bench.versions import utc_now
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +56,8 @@ class AttemptOutcome:
     cuda_visible_devices: str | None = None
     """The worker's ``CUDA_VISIBLE_DEVICES`` (None: unset), which its commands inherit: on the Ray
     backend with ``gpus_per_run`` > 0, the GPUs Ray assigned this attempt."""
+    started_at: str | None = None
+    """When the attempt started (UTC): CPU seconds measured on different days can differ (PROTOCOL §9)."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -70,6 +73,7 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
     """Train (unless finished) and evaluate ``run``; never raises for a failing command."""
     host = socket.gethostname()
     gpus = os.environ.get("CUDA_VISIBLE_DEVICES")
+    started_at = utc_now()
     started = time.monotonic()
     cpu = 0.0
     evaluating = 0.0
@@ -83,7 +87,7 @@ def execute_run(run: Run, attempt: int) -> AttemptOutcome:
             result = AttemptOutcome(ok=ok, stage=stage, exit_code=exit_code, error=error,
                                     wall_time_s=round(time.monotonic() - started, 3), cpu_time_s=round(cpu, 3),
                                     host=host, mean_return=mean_return, evaluate_wall_time_s=round(evaluating, 3),
-                                    cuda_visible_devices=gpus)
+                                    cuda_visible_devices=gpus, started_at=started_at)
             log.write(f"=== attempt {attempt}: {'done' if ok else 'failed at ' + stage}"
                       + (f" ({error})" if error else "") + "\n")
             return result

@@ -61,6 +61,9 @@ def merge_evaluations(records: Sequence[dict[str, Any]], sources: Sequence[Path]
         # Per run, in the order above: where it was evaluated and trained (PROTOCOL §8).
         "machines": [{"evaluation": record.get("machine"), "training": record.get("training_machines")}
                      for record in records],
+        # Likewise the code revisions, and when each run trained.
+        "provenance": [{"evaluation_source_revision": record.get("source_revision"),
+                        "training": record.get("training_provenance")} for record in records],
     }
     return merged
 

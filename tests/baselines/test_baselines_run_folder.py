@@ -178,6 +178,42 @@ def test_a_run_records_the_machines_its_attempts_ran_on(whole_run, cut_run, monk
     assert resumed["returns"] == whole_run[0]["returns"]
 
 
+def test_a_run_records_which_code_trained_it_and_when(whole_run, cut_run, monkeypatch):
+    """The package version stays 0.1.0 between releases: a result names the code revisions its
+    attempts ran (carried across resumes like the machines) and when it started and finished."""
+    import datetime
+
+    import baselines.train as training
+    from offdyn_bench.versions import source_revision
+
+    here = source_revision()
+    result = whole_run[0]
+    assert result["source_revisions"] == [here]
+    started, finished = (datetime.datetime.fromisoformat(result[key]) for key in ("started_at", "finished_at"))
+    assert started <= finished and finished.utcoffset() == datetime.timedelta(0)
+    first = _trainer(checkpoints(cut_run)[-1])
+    assert first["source_revisions"] == [here] and isinstance(first["started_at"], str)
+    # Resumed under another commit: both are listed; the start stays the first attempt's.
+    other = {"commit": "0" * 40, "modified": True}
+    monkeypatch.setattr(training, "source_revision", lambda: other)
+    resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
+    assert resumed["source_revisions"] == [here, other]
+    assert resumed["started_at"] == first["started_at"] <= resumed["finished_at"]
+    assert resumed["returns"] == whole_run[0]["returns"]
+
+
+def test_a_checkpoint_from_before_revisions_were_recorded_says_the_earlier_ones_are_unknown(cut_run):
+    from offdyn_bench.versions import source_revision
+
+    for checkpoint in checkpoints(cut_run):
+        trainer = _trainer(checkpoint)
+        del trainer["source_revisions"], trainer["started_at"]
+        (checkpoint / TRAINER_FILE).write_text(json.dumps(trainer))
+        (checkpoint / CHECKSUMS_FILE).unlink()
+    resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
+    assert resumed["source_revisions"] == [None, source_revision()] and resumed["started_at"] is None
+
+
 def test_a_checkpoint_from_before_machines_were_recorded_says_the_earlier_ones_are_unknown(cut_run):
     from offdyn_bench.versions import machine
 

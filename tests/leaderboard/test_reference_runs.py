@@ -302,6 +302,9 @@ def test_a_run_reproduced_elsewhere_keeps_the_published_bytes(sweep_out, tmp_pat
         # Another machine, too: where it ran, not what it measured (PROTOCOL §8).
         record["machine"] = {"cpu": "another CPU", "isa": ["avx2"], "torch_cpu_capability": "AVX2"}
         record["training_machines"] = [None, {"cpu": "another CPU"}]
+        # Other code and days: the same numbers from another commit are the same measurement.
+        record["source_revision"] = {"commit": "f" * 40, "modified": True}
+        record["training_provenance"] = {"source_revisions": [None], "started_at": "2031-01-01T00:00:00+00:00"}
         (run / name).write_text(json.dumps(record, indent=2))
     _write_curve(run, range(5000, 100001, 5000))
     (run / "metrics.jsonl").write_text((run / "metrics.jsonl").read_text().replace('"wall_time_s": 20', '"wall_time_s": 21'))
@@ -545,7 +548,8 @@ def _attempt(number: int, wall: float, cpu: float) -> dict:
 
 def test_publishing_records_each_runs_compute_from_the_sweeps_state(sweep_out, tmp_path):
     done = {"status": "done", "attempts": 3, "wall_time_s": 1300.0, "cpu_time_s": 1250.0,
-            "history": [_attempt(2, 100.0, 50.0), _attempt(3, 1200.0, 1200.0)]}
+            "history": [_attempt(2, 100.0, 50.0),
+                        _attempt(3, 1200.0, 1200.0) | {"started_at": "2026-11-29T06:24:26+00:00"}]}
     (sweep_out / "sweep.json").write_text(_state({
         "sac-target/hopper-gravity-0.5/seed-0": done,
         "sac-target/hopper-gravity-0.5/seed-9": {"status": "pending", "attempts": 1, "history": []}}))
@@ -557,7 +561,11 @@ def test_publishing_records_each_runs_compute_from_the_sweeps_state(sweep_out, t
     entry = compute["runs"]["sac-target/hopper-gravity-0.5/seed-0"]
     assert entry["attempts_started"] == 3 and entry["wall_time_s"] == 1300.0 and entry["cpu_time_s"] == 1250.0
     assert [a["attempt"] for a in entry["recorded_attempts"]] == [2, 3]
-    assert set(entry["recorded_attempts"][0]) == {"attempt", "ok", "stage", "wall_time_s", "cpu_time_s", "host"}
+    assert set(entry["recorded_attempts"][0]) == {"attempt", "ok", "stage", "started_at", "wall_time_s",
+                                                  "cpu_time_s", "host"}
+    # When each attempt started: CPU seconds from different days can differ. Unknown for a sweep
+    # from before attempts recorded it.
+    assert [a["started_at"] for a in entry["recorded_attempts"]] == [None, "2026-11-29T06:24:26+00:00"]
     # A later sweep state adds its runs and keeps the ones recorded before.
     (sweep_out / "sweep.json").write_text(_state({"sac-target/hopper-gravity-0.5/seed-1": done}))
     publish_reference_runs(sweep_out, dest)

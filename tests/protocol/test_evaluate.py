@@ -80,6 +80,14 @@ def test_a_run_folder_is_evaluated_per_training_seed(finished_run):
     from offdyn_bench.versions import machine
 
     assert record["machine"] == machine() and record["training_machines"] == [machine()]
+    # And which code evaluated and trained it, and when it trained (the version stays 0.1.0).
+    from offdyn_bench.versions import source_revision
+
+    result = json.loads((finished_run / "result.json").read_text())
+    assert record["source_revision"] == source_revision()
+    assert record["training_provenance"] == {key: result[key] for key in ("source_revisions", "started_at",
+                                                                          "finished_at")}
+    assert record["training_provenance"]["source_revisions"] == [source_revision()]
     assert read_evaluation(finished_run / "evaluation.json") == json.loads(json.dumps(record))
     # Deterministic: the same run gives the same returns.
     assert evaluate(finished_run, progress=False, out=finished_run / "again.json")["seeds"] == record["seeds"]
@@ -170,6 +178,7 @@ def test_a_user_agent_from_a_factory(agent_module):
     assert [s["seed"] for s in record["seeds"]] == [0, 1]
     assert record["method"] == "zero" and record["agent"]["kind"] == "factory"
     assert record["training_machines"] is None and record["machine"]["cpu"]  # no training of ours to describe
+    assert record["training_provenance"] is None and "source_revision" in record
     assert sys.modules[agent_module].Zero.resets == 6  # reset() before every episode
     plain = evaluate(f"{agent_module}:make_function", PENDULUM, episodes=2, progress=False)
     assert len(plain["seeds"]) == 1 and len(plain["seeds"][0]["returns"]) == 2

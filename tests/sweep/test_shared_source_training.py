@@ -105,12 +105,13 @@ def test_the_shared_score_is_the_score_of_a_run_trained_on_the_task_itself(share
     assert own["agent"]["policy_sha256"] == shared["agent"]["policy_sha256"]
     assert own["seeds"] == shared["seeds"]
     # The premise itself: the two trainings wrote the same final state and counters (the compute
-    # each measured is a measurement, not state).
+    # each measured, and when each started, are measurements, not state).
     final = f"checkpoints/step_{300:09d}"
     states = [(folder / final / "state.safetensors").read_bytes() for folder in (direct, first.folder)]
     assert states[0] == states[1]
     counters = [json.loads((folder / final / "trainer.json").read_text()) for folder in (direct, first.folder)]
-    assert all(c.pop("compute")["attempts"] == 1 for c in counters) and counters[0] == counters[1]
+    assert all(c.pop("compute")["attempts"] == 1 for c in counters)
+    assert all(isinstance(c.pop("started_at"), str) for c in counters) and counters[0] == counters[1]
 
 
 def test_a_run_is_scored_on_another_task_only_where_its_policy_would_be_the_same(shared_source_sweep, tmp_path):

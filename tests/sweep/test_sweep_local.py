@@ -3,6 +3,7 @@ runs killed mid-training (the train subprocess alone, or the whole sweep) losing
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
 import signal
@@ -42,6 +43,10 @@ def test_a_tiny_sweep_trains_and_evaluates_every_run(finished_sweep):
         assert entry["history"][0]["ok"] is True and entry["history"][0]["exit_code"] is None
         # The evaluations' share of the attempt: some of it, not all (the training took the rest).
         assert 0 < entry["history"][0]["evaluate_wall_time_s"] < entry["history"][0]["wall_time_s"]
+        # When it started (UTC): CPU seconds measured on different days can differ.
+        started = datetime.datetime.fromisoformat(entry["history"][0]["started_at"])
+        assert started.utcoffset() == datetime.timedelta(0)
+        assert abs((datetime.datetime.now(datetime.UTC) - started).total_seconds()) < 3600
         assert entry["mean_return"] == pytest.approx(sum(evaluation["seeds"][0]["returns"]) / 2)
         assert (run.folder / "result.json").exists()
     assert report.launched == 2 and not report.failed
@@ -199,6 +204,9 @@ def test_merged_evaluation_holds_each_runs_returns_and_curves(finished_sweep):
     assert merged["protocol_conformant"] is False and merged["notes"] == records[0]["notes"]
     assert merged["merged_from"] == [str(run.folder / "evaluation.json") for run in runs]
     assert merged["machines"] == [{"evaluation": r["machine"], "training": r["training_machines"]} for r in records]
+    assert merged["provenance"] == [{"evaluation_source_revision": r["source_revision"],
+                                     "training": r["training_provenance"]} for r in records]
+    assert all(p["training"]["started_at"] <= p["training"]["finished_at"] for p in merged["provenance"])
     # One machine ran it all; the trainings ran on one torch thread (the sweep's --threads 1).
     assert all([t["cpu"] for t in m["training"]] == [m["evaluation"]["cpu"]] for m in merged["machines"])
     assert all([t["torch_threads"] for t in m["training"]] == [1] for m in merged["machines"])
