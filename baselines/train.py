@@ -17,7 +17,7 @@
   another policy on another CPU model; ``source_revisions``: likewise the suite's code revisions
   (:func:`offdyn_bench.versions.source_revision`, ``null`` where unknown); and ``started_at`` /
   ``finished_at``: the UTC times the first attempt started and the last one finished (CPU seconds
-  measured on different days of one machine can differ: PROTOCOL §9);
+  measured on different days of one machine can differ: PROTOCOL §8);
 * ``.lock`` -- locked while a process trains in the folder, so a second one is refused.
 
 Every argument and config value is checked before anything is written, so bad input leaves no
@@ -537,17 +537,19 @@ class _Loop:
                 envs.episodes = list(episodes[key])
                 envs.reset_all()
         self.clock.resumed(TrainingCompute.parse(trainer.get("compute")))
-        earlier = trainer.get("machines")
-        earlier = ([m if isinstance(m, dict) else None for m in earlier] if isinstance(earlier, list) else [None])
-        current = machine(str(self.device))
-        self.machines = earlier + ([current] if current not in earlier else [])
-        earlier = trainer.get("source_revisions")
-        earlier = ([r if isinstance(r, dict) else None for r in earlier] if isinstance(earlier, list) else [None])
-        current = source_revision()
-        self.source_revisions = earlier + ([current] if current not in earlier else [])
+        self.machines = _listed_with(trainer.get("machines"), machine(str(self.device)))
+        self.source_revisions = _listed_with(trainer.get("source_revisions"), source_revision())
         started_at = trainer.get("started_at")
         self.started_at = started_at if isinstance(started_at, str) else None
         return checkpoint_step(path)
+
+
+def _listed_with(earlier: Any, current: dict[str, Any] | None) -> list[dict[str, Any] | None]:
+    """A checkpoint's list of the distinct machines (or code revisions) of earlier attempts, with
+    this attempt's added unless it is there already; a checkpoint without the list gives ``[None]``
+    (earlier attempts, unknown)."""
+    listed = [entry if isinstance(entry, dict) else None for entry in earlier] if isinstance(earlier, list) else [None]
+    return listed + ([current] if current not in listed else [])
 
 
 def load_trained_policy(run_dir: str | Path) -> Callable[[np.ndarray], np.ndarray]:

@@ -27,7 +27,8 @@ def _versions_module_at(package_dir: Path):
     """``offdyn_bench/versions.py`` loaded from a copy under ``package_dir`` (its own ``__file__``)."""
     package_dir.mkdir(parents=True, exist_ok=True)
     shutil.copy(PACKAGE / "versions.py", package_dir / "versions.py")
-    spec = importlib.util.spec_from_file_location(f"versions_copy_{abs(hash(package_dir))}", package_dir / "versions.py")
+    name = f"versions_copy_{abs(hash(package_dir))}"
+    spec = importlib.util.spec_from_file_location(name, package_dir / "versions.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

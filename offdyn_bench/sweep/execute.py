@@ -57,7 +57,7 @@ class AttemptOutcome:
     """The worker's ``CUDA_VISIBLE_DEVICES`` (None: unset), which its commands inherit: on the Ray
     backend with ``gpus_per_run`` > 0, the GPUs Ray assigned this attempt."""
     started_at: str | None = None
-    """When the attempt started (UTC): CPU seconds measured on different days can differ (PROTOCOL §9)."""
+    """When the attempt started (UTC): CPU seconds measured on different days can differ (PROTOCOL §8)."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
