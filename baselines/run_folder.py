@@ -37,10 +37,25 @@ class TrainingCompute:
     complete: bool
     """False when the run resumed from a checkpoint written before checkpoints carried compute:
     the attempts before it are then missing from the times."""
+    reference_updates: float | None = None
+    """The same CPU time counted in updates of the reference workload
+    (:mod:`offdyn_bench.machine_speed`) at the machine's speed while it ran: each stretch of CPU
+    divided by the workload's time per update measured at its start. Comparable between machines
+    and days where CPU seconds are not. None when an attempt did not measure it (trained before
+    trainings did, or a timer that read zero)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"wall_time_s": round(self.wall_time_s, 3), "cpu_time_s": round(self.cpu_time_s, 3),
-                "attempts": self.attempts, "complete": self.complete}
+                "attempts": self.attempts, "complete": self.complete} | (
+            {"reference_updates": round(self.reference_updates, 1)} if self.reference_updates is not None else {})
+
+    @property
+    def reference_update_s(self) -> float | None:
+        """The workload's time per update averaged over the training's CPU: how fast its machine
+        was, on the whole (None where unknown)."""
+        if not self.reference_updates:
+            return None
+        return self.cpu_time_s / self.reference_updates
 
     @classmethod
     def parse(cls, stored: object) -> TrainingCompute | None:
@@ -51,10 +66,12 @@ class TrainingCompute:
             return None
         times = [stored.get("wall_time_s"), stored.get("cpu_time_s")]
         attempts, complete = stored.get("attempts"), stored.get("complete")
+        updates = stored.get("reference_updates")
         if not (all(NON_NEGATIVE.accepts(t) for t in times) and _POSITIVE_INTEGER.accepts(attempts)
-                and isinstance(complete, bool)):
+                and isinstance(complete, bool) and (updates is None or NON_NEGATIVE.accepts(updates))):
             return None
-        return cls(float(times[0]), float(times[1]), attempts, complete)
+        return cls(float(times[0]), float(times[1]), attempts, complete,
+                   float(updates) if updates is not None else None)
 
 
 def check_writable(out: Path) -> None:

@@ -11,7 +11,9 @@
   with the sha256 of its files; the two newest are kept (:mod:`baselines.checkpoint`);
 * ``result.json`` -- the final per-seed, per-episode target returns, versions, task and dataset(s),
   ``warnings`` (e.g. a budget too short for the method to make any update), ``compute``: the
-  training's wall and CPU seconds over all its attempts (:class:`baselines.run_folder.TrainingCompute`),
+  training's wall and CPU seconds over all its attempts, and that CPU in updates of a reference
+  workload timed on the machine as it ran (:class:`baselines.run_folder.TrainingCompute`,
+  :mod:`offdyn_bench.machine_speed`),
   and ``machines``: the distinct machines its attempts ran on (:func:`offdyn_bench.versions.machine`;
   a ``null`` entry stands for attempts before checkpoints recorded them), since the same seed trains
   another policy on another CPU model; ``source_revisions``: likewise the suite's code revisions
@@ -65,6 +67,7 @@ from baselines.run_folder import (CONFIG_FILE, METRICS_FILE, RESULT_FILE, Traini
                                   write_lines_atomic)
 from offdyn_bench.envs import flat_observations
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.machine_speed import reference_update_seconds
 from offdyn_bench.protocol.definition import ProtocolError
 from offdyn_bench.protocol.training import resolve_run
 from offdyn_bench.tasks import TaskPair, get_task
@@ -373,20 +376,54 @@ class _Envs:
         self.reset_all()
 
 
-class _Clock:
-    """This attempt's wall and CPU time on top of what earlier attempts spent."""
+RECALIBRATE_EVERY_CPU_S = 120.0
+"""At a checkpoint, the machine's speed is measured again once this much CPU has passed since the
+last measurement: a long training follows a machine whose speed changes while it runs, and a
+short one (a test's) is timed once."""
 
-    def __init__(self) -> None:
-        self.before = TrainingCompute(0.0, 0.0, 0, True)
+
+class _Clock:
+    """This attempt's wall and CPU time on top of what earlier attempts spent, and that CPU in
+    updates of the reference workload (:mod:`offdyn_bench.machine_speed`), whose speed it measures
+    at the start and again at checkpoints (:meth:`recalibrate`)."""
+
+    def __init__(self, measure_update_s: Callable[[], float]) -> None:
+        self.before = TrainingCompute(0.0, 0.0, 0, True, 0.0)
         self.wall_start, self.cpu_start = time.perf_counter(), time.process_time()
+        self.measure_update_s = measure_update_s
+        self.calibrated_cpu = 0.0
+        """This attempt's CPU seconds when the speed was last measured."""
+        self.updates_before_calibration: float | None = 0.0
+        """This attempt's CPU before then, in reference updates (None: a measurement read zero)."""
+        self.update_s = measure_update_s()
 
     def resumed(self, before: TrainingCompute | None) -> None:
         self.before = before if before is not None else TrainingCompute(0.0, 0.0, 1, False)
 
+    def _attempt_updates(self, cpu: float) -> float | None:
+        if self.updates_before_calibration is None or self.update_s <= 0:
+            return None
+        return self.updates_before_calibration + (cpu - self.calibrated_cpu) / self.update_s
+
+    def recalibrate(self) -> None:
+        """Measure the machine's speed again, once :data:`RECALIBRATE_EVERY_CPU_S` have passed."""
+        cpu = time.process_time() - self.cpu_start
+        if cpu - self.calibrated_cpu < RECALIBRATE_EVERY_CPU_S:
+            return
+        self.updates_before_calibration = self._attempt_updates(cpu)
+        self.calibrated_cpu = cpu
+        self.update_s = self.measure_update_s()
+
     def now(self) -> TrainingCompute:
+        cpu = time.process_time() - self.cpu_start
+        updates = self._attempt_updates(cpu)
+        if self.before.reference_updates is None or updates is None:
+            total_updates = None
+        else:
+            total_updates = self.before.reference_updates + updates
         return TrainingCompute(self.before.wall_time_s + time.perf_counter() - self.wall_start,
-                               self.before.cpu_time_s + time.process_time() - self.cpu_start,
-                               self.before.attempts + 1, self.before.complete)
+                               self.before.cpu_time_s + cpu, self.before.attempts + 1, self.before.complete,
+                               total_updates)
 
 
 class _Loop:
@@ -401,7 +438,7 @@ class _Loop:
         for envs in (self.train_envs, self.target_envs):
             if envs is not None:
                 envs.reset_all()
-        self.clock = _Clock()
+        self.clock = _Clock(reference_update_seconds)
         self.machines: list[dict[str, Any] | None] = [machine(device)]
         """The distinct machines of this training's attempts, in order (None: attempts before
         checkpoints recorded them)."""
@@ -479,6 +516,7 @@ class _Loop:
         for envs in (self.train_envs, self.target_envs):
             if envs is not None:
                 envs.end_episodes()
+        self.clock.recalibrate()
         trainer = {"step": step,
                    "train_episodes": self.train_envs.episodes if self.train_envs else None,
                    "target_episodes": self.target_envs.episodes if self.target_envs else None,

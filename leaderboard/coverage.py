@@ -26,7 +26,7 @@ import dataclasses
 import json
 import shlex
 import statistics
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,7 @@ from baselines.run_folder import TrainingCompute
 from leaderboard.reference_runs import (REFERENCE_RUNS_DIR, published_record_files, read_published_compute,
                                        read_published_record, require_published_root)
 from leaderboard.submission import SubmissionError
+from offdyn_bench.machine_speed import REFERENCE_WORKLOAD, reference_update_seconds
 from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
 from offdyn_bench.sweep.driver import format_duration
 from offdyn_bench.sweep.runs import Run, expand
@@ -92,6 +93,24 @@ class MethodCost:
 
 
 @dataclasses.dataclass(frozen=True)
+class MachineSpeed:
+    """This machine's speed now against that of the machines the priced trainings ran on, in the
+    reference workload's time per update (:mod:`offdyn_bench.machine_speed`)."""
+
+    trainings_measured: int
+    """How many of the trainings the prices count measured it (those trained since it exists)."""
+    trainings_counted: int
+    published_update_s: float
+    """The median over those trainings of their machine's time per update, averaged over their CPU."""
+    here_update_s: float
+
+    @property
+    def ratio(self) -> float:
+        """How many times the CPU seconds a training would take here (above 1: slower here)."""
+        return self.here_update_s / self.published_update_s
+
+
+@dataclasses.dataclass(frozen=True)
 class Coverage:
     spec_source: str
     budget: str
@@ -112,6 +131,8 @@ class Coverage:
     """Run id -> its seeds published already, for the runs of several seeds that have some but not
     all of them published (a lease's ``seeds-0-4`` where a CPU session published ``seed-0``): such a
     run could not be published (a seed is published once), so ``sweep --skip-published`` refuses it."""
+    speed: MachineSpeed | None = None
+    """None where no priced training measured its machine's speed."""
 
     @property
     def rows(self) -> tuple[Row, ...]:
@@ -127,10 +148,13 @@ class Coverage:
         return sum(len(seeds) for seeds in self.published.values())
 
 
-def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Coverage:
+def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR, *,
+                       measure_update_s: Callable[[], float] = reference_update_seconds) -> Coverage:
     """The spec's runs against the reference runs published under ``root`` at the spec's budget,
     seed by seed: a seed counts when a published record of that seed is the spec's run, whichever
-    seeds its run trained beside it (``seed-3``, or ``seeds-0-4`` from a GPU sweep)."""
+    seeds its run trained beside it (``seed-3``, or ``seeds-0-4`` from a GPU sweep). Where priced
+    trainings measured their machine's speed, ``measure_update_s`` measures this one's (a tenth
+    of a second) for :attr:`Coverage.speed`."""
     if spec.budget is None:
         raise SubmissionError(f"{spec.source}: sets steps, not a protocol budget; reference runs are published "
                               "per budget (lite, full): give the spec a budget")
@@ -172,9 +196,18 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     skippable = frozenset(run.run_id for run in runs
                           if run.run_id in complete_ids and run.folder not in needed_trainings)
     counted: dict[str, dict[str | None, list[float]]] = {}  # method -> robot -> CPU seconds
-    for run_id, cpu in (published_training_cpu(budget_dir, spec.seeds_per_run) if spec.device == "cpu" else {}).items():
+    priced = published_trainings(budget_dir, spec.seeds_per_run) if spec.device == "cpu" else {}
+    for run_id, training in priced.items():
         method, task, _ = run_id.split("/")
-        counted.setdefault(method, {}).setdefault(_robot_of(task), []).append(cpu)
+        counted.setdefault(method, {}).setdefault(_robot_of(task), []).append(training.cpu_time_s)
+    measured = [speed for run_id, training in priced.items()
+                if run_id.split("/")[0] in spec.methods and (speed := training.reference_update_s) is not None]
+    speed = None
+    if measured and missing:  # it speaks to the prices of what is missing
+        here = measure_update_s()
+        if here > 0:
+            speed = MachineSpeed(len(measured), sum(1 for run_id in priced if run_id.split("/")[0] in spec.methods),
+                                 statistics.median(measured), here)
     costs = []
     for method in spec.methods:
         lacking = [run for run in missing if run.method == method]
@@ -198,7 +231,7 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR) -> Cove
     return Coverage(spec.source, spec.budget, budget_dir, tuple(spec.methods),
                     {key: tuple(sorted(seeds)) for key, seeds in wanted.items()},
                     {key: tuple(sorted(published.get(key, ()))) for key in wanted},
-                    tuple(sorted(others.items())), tuple(costs), skippable, partly)
+                    tuple(sorted(others.items())), tuple(costs), skippable, partly, speed)
 
 
 def _sides(run: Run) -> tuple[str, ...]:
@@ -280,14 +313,20 @@ def _robot_of(task: str) -> str | None:
 def published_training_cpu(budget_dir: Path, seeds_per_run: int) -> dict[str, float]:
     """Run id (``method/task/label``) -> the CPU seconds of each published CPU training of
     ``seeds_per_run`` seeds that counted its compute whole."""
-    times: dict[str, float] = {}
+    return {run_id: training.cpu_time_s for run_id, training in published_trainings(budget_dir, seeds_per_run).items()}
+
+
+def published_trainings(budget_dir: Path, seeds_per_run: int) -> dict[str, TrainingCompute]:
+    """Run id (``method/task/label``) -> the compute of each published CPU training of
+    ``seeds_per_run`` seeds that counted its compute whole."""
+    times: dict[str, TrainingCompute] = {}
     for run_id, entry in sorted(read_published_compute(budget_dir).items()):
         training = TrainingCompute.parse(entry.get("training"))
         label = run_id.rsplit("/", 1)[-1].rpartition(".")[2]
         seeds = 1 if label.startswith("seed-") else _group_size(label)
         if (training is not None and training.complete and seeds == seeds_per_run
                 and not _trained_on_a_gpu(budget_dir, run_id)):
-            times[run_id] = training.cpu_time_s
+            times[run_id] = training
     return times
 
 
@@ -365,6 +404,13 @@ def coverage_lines(coverage: Coverage) -> list[str]:
                          f"{estimate}")
             if cost.median_training_cpu_s is not None:
                 lines += [f"    {_robot_estimate(cost, robot)}" for robot in cost.robots]
+        speed = coverage.speed
+        if speed is not None:
+            lines.append(f"machine speed: {speed.trainings_measured} of the {speed.trainings_counted} priced trainings "
+                         f"timed the reference workload ({REFERENCE_WORKLOAD}) on their machine, a median "
+                         f"{speed.published_update_s * 1e3:.2f} ms an update; this machine takes "
+                         f"{speed.here_update_s * 1e3:.2f} ms now, so a training here would take about "
+                         f"{speed.ratio:.2f} times the CPU of one of theirs (PROTOCOL §8)")
         lines.append(f"run only those: offdyn-bench sweep {shlex.quote(coverage.spec_source)} --skip-published")
     if coverage.others:
         lines.append(f"{len(coverage.others)} published record(s) where the spec's runs belong are other runs "

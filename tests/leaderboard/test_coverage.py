@@ -210,9 +210,10 @@ def test_a_missing_training_is_priced_on_its_own_robot(tmp_path):
     assert cost.cpu_to_go_s == pytest.approx(float(np.median(ant) + 2 * np.median(hopper)))
     assert cost.median_training_cpu_s == pytest.approx(float(np.median(_dap_training_cpu(compute))))
     lines = coverage_lines(reference_coverage(spec, root))
-    assert lines[-4].startswith("  dap: 3 seed result(s), 3 training(s) = ")
-    assert lines[-3] == f"    Ant: 1 x {format_duration(float(np.median(ant)))} (median of {len(ant)} on Ant)"
-    assert lines[-2] == f"    Hopper: 2 x {format_duration(float(np.median(hopper)))} (median of {len(hopper)} on Hopper)"
+    at = next(i for i, line in enumerate(lines) if line.startswith("  dap: "))
+    assert lines[at].startswith("  dap: 3 seed result(s), 3 training(s) = ")
+    assert lines[at + 1] == f"    Ant: 1 x {format_duration(float(np.median(ant)))} (median of {len(ant)} on Ant)"
+    assert lines[at + 2] == f"    Hopper: 2 x {format_duration(float(np.median(hopper)))} (median of {len(hopper)} on Hopper)"
 
     # No Ant training counted: the Ant one is priced at DAP's median over the other robots.
     compute["runs"] = {run_id: entry for run_id, entry in compute["runs"].items() if not run_id.startswith("dap/ant-")}
@@ -222,7 +223,8 @@ def test_a_missing_training_is_priced_on_its_own_robot(tmp_path):
     assert [(robot.robot, robot.median_training_cpu_s is None) for robot in cost.robots] == [
         ("Ant", True), ("Hopper", False)]
     assert cost.cpu_to_go_s == pytest.approx(float(np.median(everywhere) + 2 * np.median(hopper)))
-    assert coverage_lines(reference_coverage(spec, root))[-3] == (
+    lines = coverage_lines(reference_coverage(spec, root))
+    assert lines[next(i for i, line in enumerate(lines) if line.startswith("  dap: ")) + 1] == (
         f"    Ant: 1 x {format_duration(float(np.median(everywhere)))} (median of {len(everywhere)} on any robot, "
         "none on Ant)")
 
@@ -319,3 +321,49 @@ def test_skippable_runs_are_the_published_ones_less_a_training_a_missing_run_sti
     skippable = reference_coverage(spec_of(tmp_path, methods=["sac-source"], tasks=HOPPER_TASKS), root).skippable
     assert "sac-source/hopper-friction-0.5/seed-3" in skippable
     assert "sac-source/hopper-gravity-0.5/seed-3" not in skippable
+
+
+def test_where_priced_trainings_timed_their_machine_the_coverage_compares_this_one(tmp_path):
+    """CPU seconds from another day or machine are not this machine's (PROTOCOL §8): trainings
+    that timed the reference workload say how fast their machines were, and the coverage sets
+    this machine's speed now beside them."""
+    root = copy_published(tmp_path, "dap")
+    shutil.rmtree(root / "lite" / "dap" / "hopper-gravity-0.5" / "seed-1")
+    spec = spec_of(tmp_path, methods=["dap"], tasks=["hopper-gravity-0.5"])
+    compute_file = root / "lite" / "compute.json"
+    compute = json.loads(compute_file.read_text())
+    measured_here = []
+
+    def here() -> float:
+        measured_here.append(True)
+        return 0.004
+
+    # None of them timed it: no comparison, and no measurement here either.
+    for entry in compute["runs"].values():
+        entry.get("training", {}).pop("reference_updates", None)
+    compute_file.write_text(json.dumps(compute))
+    coverage = reference_coverage(spec, root, measure_update_s=here)
+    assert coverage.speed is None and not measured_here
+    assert not any(line.startswith("machine speed") for line in coverage_lines(coverage))
+
+    # Three DAP trainings timed it (2, 3 and 2.5 ms an update on their machines), and one RL on
+    # source training, which prices no DAP run.
+    dap = sorted(run_id for run_id, entry in compute["runs"].items()
+                 if run_id.startswith("dap/") and entry.get("training", {}).get("complete"))
+    for run_id, update_s in zip(dap, (0.002, 0.003, 0.0025)):
+        training = compute["runs"][run_id]["training"]
+        training["reference_updates"] = training["cpu_time_s"] / update_s
+    other = next(run_id for run_id in compute["runs"] if run_id.startswith("sac-source/"))
+    compute["runs"][other].setdefault("training", {})["reference_updates"] = 1.0
+    compute_file.write_text(json.dumps(compute))
+    coverage = reference_coverage(spec, root, measure_update_s=here)
+    speed = coverage.speed
+    assert (speed.trainings_measured, speed.trainings_counted) == (3, len(_dap_training_cpu(compute)))
+    assert speed.published_update_s == pytest.approx(0.0025) and speed.here_update_s == 0.004
+    assert speed.ratio == pytest.approx(1.6)
+    (line,) = [line for line in coverage_lines(coverage) if line.startswith("machine speed")]
+    assert line == (f"machine speed: 3 of the {speed.trainings_counted} priced trainings timed the reference workload "
+                    "(mlp-256x2-adam-batch256/v1) on their machine, a median 2.50 ms an update; this machine takes "
+                    "4.00 ms now, so a training here would take about 1.60 times the CPU of one of theirs (PROTOCOL §8)")
+    # The prices themselves stay the published CPU seconds.
+    assert coverage.costs[0].cpu_to_go_s == pytest.approx(float(np.median(_dap_training_cpu(compute, "hopper-"))))
