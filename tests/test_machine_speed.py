@@ -36,6 +36,11 @@ def test_more_work_per_update_is_not_what_it_reports_but_time_per_update():
     assert 0.33 < short / long < 3.0
 
 
+def test_it_measures_the_same_work_inside_a_callers_no_grad_block():
+    with torch.no_grad():
+        assert reference_update_seconds(blocks=1, updates_per_block=2) > 0
+
+
 @pytest.mark.parametrize("blocks, updates", [(0, 8), (5, 0), (-1, 1)])
 def test_an_empty_measurement_is_refused(blocks, updates):
     with pytest.raises(ValueError, match="must be at least 1"):
