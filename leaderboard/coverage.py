@@ -200,14 +200,13 @@ def reference_coverage(spec: SweepSpec, root: Path = REFERENCE_RUNS_DIR, *,
     for run_id, training in priced.items():
         method, task, _ = run_id.split("/")
         counted.setdefault(method, {}).setdefault(_robot_of(task), []).append(training.cpu_time_s)
-    measured = [speed for run_id, training in priced.items()
-                if run_id.split("/")[0] in spec.methods and (speed := training.reference_update_s) is not None]
+    of_spec = [training for run_id, training in priced.items() if run_id.split("/")[0] in spec.methods]
+    measured = [speed for training in of_spec if (speed := training.reference_update_s) is not None]
     speed = None
     if measured and missing:  # it speaks to the prices of what is missing
         here = measure_update_s()
         if here > 0:
-            speed = MachineSpeed(len(measured), sum(1 for run_id in priced if run_id.split("/")[0] in spec.methods),
-                                 statistics.median(measured), here)
+            speed = MachineSpeed(len(measured), len(of_spec), statistics.median(measured), here)
     costs = []
     for method in spec.methods:
         lacking = [run for run in missing if run.method == method]

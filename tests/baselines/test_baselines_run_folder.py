@@ -5,6 +5,7 @@ folder; the checks are what the user sees and that nothing is written or lost.""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -207,11 +208,32 @@ def test_a_checkpoint_from_before_revisions_were_recorded_says_the_earlier_ones_
 
     for checkpoint in checkpoints(cut_run):
         trainer = _trainer(checkpoint)
-        del trainer["source_revisions"], trainer["started_at"]
+        del trainer["source_revisions"], trainer["started_at"], trainer["compute"]["reference_updates"]
         (checkpoint / TRAINER_FILE).write_text(json.dumps(trainer))
         (checkpoint / CHECKSUMS_FILE).unlink()
     resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)
     assert resumed["source_revisions"] == [None, source_revision()] and resumed["started_at"] is None
+    # Nor did it count its CPU in reference updates: the whole count is unknown, not a part.
+    assert "reference_updates" not in resumed["compute"]
+
+
+def test_a_training_counts_its_cpu_in_reference_updates_across_a_resume(whole_run, cut_run, monkeypatch):
+    import baselines.train as training
+    from offdyn_bench.machine_speed import reference_update_seconds
+
+    compute = whole_run[0]["compute"]
+    # A real measurement: the CPU per update it implies is the machine's, within its noise.
+    update_s = TrainingCompute.parse(compute).reference_update_s
+    assert math.isfinite(compute["reference_updates"]) and 0.2 < update_s / reference_update_seconds() < 5.0
+
+    # Resumed on a machine that takes 1 s an update: the resumed attempt adds about its own CPU
+    # seconds, and the first attempt's count is kept.
+    carried = _trainer(checkpoints(cut_run)[-1])["compute"]
+    monkeypatch.setattr(training, "reference_update_seconds", lambda: 1.0)
+    resumed = train("sac-source", PENDULUM, out=cut_run, **RUN)["compute"]
+    added_cpu = resumed["cpu_time_s"] - carried["cpu_time_s"]
+    assert resumed["reference_updates"] - carried["reference_updates"] == pytest.approx(added_cpu, abs=0.2)
+    assert resumed["reference_updates"] > carried["reference_updates"] > 0
 
 
 def test_a_checkpoint_from_before_machines_were_recorded_says_the_earlier_ones_are_unknown(cut_run):
