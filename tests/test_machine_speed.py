@@ -10,6 +10,7 @@ from baselines.run_folder import TrainingCompute
 from baselines.train import RECALIBRATE_EVERY_CPU_S, _Clock
 from offdyn_bench.machine_speed import reference_update_seconds
 
+
 def test_the_workload_takes_milliseconds_and_changes_no_random_stream_or_thread_count():
     torch.manual_seed(123)
     state = torch.get_rng_state()
