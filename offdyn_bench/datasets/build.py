@@ -15,7 +15,7 @@ import dataclasses
 import os
 import pathlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import gymnasium
@@ -31,6 +31,7 @@ from offdyn_bench.datasets.collect import (
     gaussian_action_noise,
     random_reference_returns,
 )
+from offdyn_bench.datasets.kernel import DATASET_BLAS_KERNEL, KernelPlan, call_on_kernel, current_plan
 from offdyn_bench.datasets.install import InstallError, dataset_dir, install_tree, is_installed, resolve_root, staging
 from offdyn_bench.datasets.manifest import (
     ArchiveRecord,
@@ -316,8 +317,24 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
     ``out_dir`` receives the archive and manifest entry in the remote layout. ``recorded`` is
     the manifest entry to reproduce: when it has file hashes, a build whose bytes differ is an
     error and nothing is installed or written.
+
+    The build runs on OpenBLAS's Haswell kernel, the one the manifest was built on: in a child
+    process when numpy loaded another (:mod:`offdyn_bench.datasets.kernel`).
     """
-    root = resolve_root(root)
+    plan = current_plan()
+    arguments = {"recipe": recipe, "root": resolve_root(root), "out_dir": out_dir, "recorded": recorded,
+                 "install": install, "replace": replace, "plan": plan}
+    if plan.where == "child":
+        started = time.perf_counter()
+        result: BuildResult = call_on_kernel(_build_here, arguments, plan.kernel or DATASET_BLAS_KERNEL, on_progress)
+        # The child's clock leaves out its start-up: the figure a caller reports is the whole build.
+        return dataclasses.replace(result, seconds=time.perf_counter() - started)
+    return _build_here(**arguments, on_progress=on_progress)
+
+
+def _build_here(recipe: Recipe, *, root: pathlib.Path, out_dir: pathlib.Path | None, recorded: Entry | None,
+                install: bool, replace: bool, plan: KernelPlan,
+                on_progress: Callable[[int], None] | None = None) -> BuildResult:
     started = time.perf_counter()
     pair = recipe.check_task()
     env = pair.make(recipe.collect_in)
@@ -345,6 +362,7 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
     env.close()
     oracle_path, recipe = _oracle(recipe, fresh=fresh)
     scores = reference_scores(recipe, pair, oracle_path)
+    built_with = versions() | ({"blas_kernel": plan.kernel} if plan.kernel else {})
     provenance = {
         "recipe": recipe.to_dict(),
         "task": pair.to_dict(),
@@ -365,7 +383,8 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
                 raise BuildMismatchError(
                     f"rebuilt {recipe.dataset_id} differs from the manifest ({len(problems)} problems: "
                     + "; ".join(problems[:3]) + "). The manifest was built with "
-                    f"{recorded.built_with}, this build uses {versions()}; nothing was installed")
+                    f"{_with_kernel(recorded.built_with)}, this build uses {_with_kernel(built_with)} ({plan.reason}); "
+                    "nothing was installed")
         # An identical installed copy is kept; a different one only goes with --force.
         already = install and not replace and is_installed(recipe.dataset_id, root)
         if already and tree_sha256(dataset_dir(recipe.dataset_id, root)) != files:
@@ -377,7 +396,7 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
                       file_sizes={rel: (built / rel).stat().st_size for rel in files},
                       archive=ArchiveRecord(archive_name(recipe.dataset_id), archive_sha, archive_path.stat().st_size),
                       total_steps=sum(len(e.rewards) for e in episodes), total_episodes=len(episodes),
-                      reference_scores=scores, built_with=versions())
+                      reference_scores=scores, built_with=built_with)
         if out_dir is not None:
             publish_entry(entry, out_dir)
         installed_at = None
@@ -388,6 +407,12 @@ def build_dataset(recipe: Recipe, *, root: pathlib.Path | None = None, out_dir: 
     return BuildResult(entry=entry, installed_at=installed_at,
                        archive_path=archive_path if out_dir is not None else None,
                        seconds=time.perf_counter() - started, already_installed=already)
+
+
+def _with_kernel(built_with: Mapping[str, Any] | None) -> dict[str, Any]:
+    """``built_with`` naming the BLAS kernel: entries recorded before it was written down were all built
+    on :data:`DATASET_BLAS_KERNEL`."""
+    return {"blas_kernel": DATASET_BLAS_KERNEL} | dict(built_with or {})
 
 
 def publish_entry(entry: Entry, out_dir: pathlib.Path) -> None:

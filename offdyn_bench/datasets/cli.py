@@ -9,7 +9,14 @@ from typing import Annotated, Optional
 import typer
 from tqdm import tqdm
 
-from offdyn_bench.datasets.build import MissingPolicyError, build_dataset, check_buildable, record_in_manifest, repo_path
+from offdyn_bench.datasets.build import (
+    BuildMismatchError,
+    MissingPolicyError,
+    build_dataset,
+    check_buildable,
+    record_in_manifest,
+    repo_path,
+)
 from offdyn_bench.datasets.ensure import ensure_dataset
 from offdyn_bench.datasets.install import datasets_root, is_installed, verify_installed
 from offdyn_bench.datasets.staging import clean_stale_staging
@@ -97,7 +104,8 @@ def build_command(
                 with tqdm(total=entry.recipe.num_transitions, desc=ident, unit="step") as bar:
                     result = build_dataset(entry.recipe, out_dir=out, recorded=recorded, install=install,
                                            replace=force, on_progress=bar.update)
-            except MissingPolicyError as error:
+            except (MissingPolicyError, BuildMismatchError) as error:
+                # The others still build: `build --all --no-install` checks the whole manifest.
                 typer.echo(f"error: {error}", err=True)
                 failed.append(ident)
                 continue
@@ -111,7 +119,8 @@ def build_command(
                 manifest = manifest.with_entry(result.entry)
                 typer.echo(f"recorded {ident} in {path}")
         if failed:
-            typer.echo(f"{len(failed)} of {len(targets)} datasets not built: {', '.join(failed)}", err=True)
+            typer.echo(f"{len(failed)} of {len(targets)} datasets not built (missing policy or other bytes than the "
+                       f"manifest's): {', '.join(failed)}", err=True)
             raise typer.Exit(1)
 
 

@@ -124,7 +124,8 @@ def _episodes_of(buffer: Mapping[str, np.ndarray]) -> list[slice]:
 
 
 _REPLAYED_BUFFERS: dict[tuple[str, str, int], dict[str, np.ndarray]] = {}
-"""Replay buffers re-run and checked in this process, by (policy sha256, sidecar sha256, member)."""
+"""Replay buffers re-run and checked in this process, by (policy sha256, sidecar sha256, member). A
+build pinned to the manifest's BLAS kernel in a child process (datasets/kernel.py) starts without them."""
 
 
 def collect_training_replay(recipe: Recipe, pair: TaskPair, env: gymnasium.Env,

@@ -94,6 +94,26 @@ def test_build_reports_a_missing_behaviour_policy(tmp_path: pathlib.Path, tiny_r
     assert "1 of 1 datasets not built" in result.output
 
 
+def test_build_all_checks_every_dataset_and_names_those_with_other_bytes(tmp_path: pathlib.Path,
+                                                                          tiny_recipe) -> None:
+    manifest_path = tmp_path / "manifest.json"
+    good, bad = tiny_recipe("walker2d-friction-0.5", transitions=60), tiny_recipe("hopper-gravity-0.5", transitions=60)
+    write_manifest(Manifest.from_entries([Entry(recipe=good), Entry(recipe=bad)]), manifest_path)
+    assert invoke("build", "--all", "--update-manifest", "--no-install", "--manifest",
+                  str(manifest_path)).exit_code == 0
+    recorded = read_manifest(manifest_path)
+    tampered = dataclasses.replace(recorded.entries[bad.dataset_id],
+                                   files={**recorded.entries[bad.dataset_id].files, "data/main_data.hdf5": "0" * 64})
+    write_manifest(recorded.with_entry(tampered), manifest_path)
+    # The mismatch comes first in sorted order; the check goes on to the next dataset.
+    result = invoke("build", "--all", "--no-install", "--manifest", str(manifest_path))
+    assert result.exit_code == 1
+    assert f"rebuilt {bad.dataset_id} differs from the manifest" in result.output
+    assert f"{good.dataset_id}: 60 transitions" in result.output and "(matches the manifest)" in result.output
+    assert f"1 of 2 datasets not built (missing policy or other bytes than the manifest's): {bad.dataset_id}" \
+        in result.output
+
+
 def test_bad_ids_are_clear_errors() -> None:
     result = invoke("build", "offdyn/hopper-gravity-0p5/expert-v0")
     assert result.exit_code == 2 and "unknown dataset quality 'expert'" in result.output

@@ -121,6 +121,8 @@ def test_medium_replay_is_the_runs_buffer_simulated_again(behaviours, tmp_path, 
 
     out, _, summary = behaviours
     recipe = _recipe("medium-replay", behaviours)
+    # In this process, on numpy's own kernel: the replay cache and the counter below live here.
+    monkeypatch.setenv("OFFDYN_BLAS_KERNEL", "native")
     monkeypatch.setattr(training_data, "_REPLAYED_BUFFERS", {})
     result = build_dataset(recipe, root=tmp_path / "minari")
     step = summary["level"]["chosen_step"]
