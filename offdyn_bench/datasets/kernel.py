@@ -166,13 +166,18 @@ def call_on_kernel(function: Callable[..., Any], kwargs: Mapping[str, Any], kern
     env[OPENBLAS_ENV] = kernel
     env["PYTHONPATH"] = os.pathsep.join([str(package_parent), *filter(None, [env.get("PYTHONPATH")])])
     request = pickle.dumps((function.__module__, function.__qualname__, dict(kwargs), kernel))
-    # Not `-m`: run as __main__ the module's classes would be other classes than the parent's.
-    child = subprocess.Popen([sys.executable, "-c", f"from {__name__} import child_main; raise SystemExit(child_main())"],
-                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+    # Not `-m`: run as __main__ the module's classes would be other classes than the parent's. The
+    # messages get the real stdout before any import can print; whatever is printed goes to stderr.
+    code = ("import os; channel = os.dup(1); os.dup2(2, 1); "
+            f"from {__name__} import child_main; raise SystemExit(child_main(channel))")
+    child = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
     assert child.stdin is not None and child.stdout is not None
     try:
-        child.stdin.write(request)
-        child.stdin.close()
+        try:
+            child.stdin.write(request)
+            child.stdin.close()
+        except BrokenPipeError:
+            pass  # it died before reading: said below, with its exit code
         while (message := _receive(child.stdout)) is not None:
             kind = message[0]
             if kind == "progress" and on_progress is not None:
@@ -194,10 +199,9 @@ def call_on_kernel(function: Callable[..., Any], kwargs: Mapping[str, Any], kern
         child.stdout.close()
 
 
-def child_main() -> int:
-    """Run one request from stdin; messages go to the real stdout, anything printed to stderr."""
-    channel = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)
+def child_main(channel_fd: int) -> int:
+    """Run one request from stdin, sending messages to ``channel_fd`` (the parent's pipe)."""
+    channel = os.fdopen(channel_fd, "wb")
     module, qualname, kwargs, kernel = pickle.loads(sys.stdin.buffer.read())  # noqa: S301 (from our parent)
     try:
         loaded = numpy_blas()

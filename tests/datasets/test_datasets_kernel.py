@@ -178,3 +178,17 @@ def test_a_bad_input_error_in_the_child_comes_back_as_its_message(monkeypatch: p
         call_on_kernel(raise_unknown_task, {"name": "hoper-gravity-0.5"}, "Nehalem")
     assert "unknown task 'hoper-gravity-0.5'; closest valid names: 'hopper-gravity-0.5'" in str(raised.value)
     assert "Traceback" not in str(raised.value)
+
+
+def exit_at_once(code: int, on_progress: object = None) -> None:
+    """Runs in the child: it ends without sending a result."""
+    os._exit(code)
+
+
+@needs_openblas_x86
+def test_a_child_that_ends_without_a_result_is_an_error_with_its_exit_code(monkeypatch: pytest.MonkeyPatch) -> None:
+    here = str(pathlib.Path(__file__).resolve().parent)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [here, os.environ.get("PYTHONPATH")])))
+    with pytest.raises(KernelError, match=r"child process on the Nehalem kernel ended \(exit code 3\) without a "
+                                          r"result"):
+        call_on_kernel(exit_at_once, {"code": 3}, "Nehalem")
