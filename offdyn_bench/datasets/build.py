@@ -383,7 +383,7 @@ def _build_here(recipe: Recipe, *, root: pathlib.Path, out_dir: pathlib.Path | N
                 raise BuildMismatchError(
                     f"rebuilt {recipe.dataset_id} differs from the manifest ({len(problems)} problems: "
                     + "; ".join(problems[:3]) + "). The manifest was built with "
-                    f"{_with_kernel(recorded.built_with)}, this build uses {_with_kernel(built_with)} ({plan.reason}); "
+                    f"{_with_kernel(recorded.built_with)}, this build uses {built_with} ({plan.reason}); "
                     "nothing was installed")
         # An identical installed copy is kept; a different one only goes with --force.
         already = install and not replace and is_installed(recipe.dataset_id, root)
