@@ -2,7 +2,7 @@
 
 A behaviour policy's actions are numpy matrix-vector products (:class:`~offdyn_bench.datasets.policies.MLPPolicy`),
 which numpy hands to OpenBLAS. OpenBLAS picks a kernel for the CPU it finds: ``SkylakeX`` on an
-AVX-512 Intel Xeon, ``Haswell`` on AVX2 processors and on AMD's Zen. The kernels sum in different
+AVX-512 Intel Xeon, ``Haswell`` on AVX2 processors. The kernels sum in different
 orders, so the same weights give actions that differ in the last bits, and a contact-rich robot
 turns that into another trajectory within a few hundred steps: Ant's source-policy datasets rebuilt
 on an AVX-512 Xeon differ from the manifest, while Hopper's, with fewer contacts, still match.
