@@ -82,21 +82,33 @@ NUMERICS_ENVIRONMENT = ("MKL_CBWR", "MKL_ENABLE_INSTRUCTIONS", "MKL_DEBUG_CPU_TY
                         "DNNL_MAX_CPU_ISA", "ONEDNN_MAX_CPU_ISA", "OPENBLAS_CORETYPE")
 
 
-def _cpu_info() -> tuple[str | None, list[str]]:
-    """The CPU's model name and its instruction sets among ``_ISA_FLAGS`` (Linux; elsewhere what
-    ``platform`` says and no flags)."""
+def _read_cpuinfo() -> tuple[str | None, frozenset[str]]:
+    """The first CPU's model name and all its flags from ``/proc/cpuinfo`` (None and none where it
+    cannot be read)."""
     try:
         with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as cpuinfo:
             text = cpuinfo.read()
     except OSError:
-        return platform.processor() or None, []
-    model, flags = None, set()
+        return None, frozenset()
+    model, flags = None, frozenset()
     for line in text.splitlines():
         key, _, value = line.partition(":")
         if key.strip() == "model name" and model is None:
             model = value.strip()
         elif key.strip() == "flags" and not flags:
-            flags = set(value.split())
+            flags = frozenset(value.split())
+    return model, flags
+
+
+def cpu_flags() -> frozenset[str]:
+    """Every instruction-set flag of the CPU (Linux; empty elsewhere)."""
+    return _read_cpuinfo()[1]
+
+
+def _cpu_info() -> tuple[str | None, list[str]]:
+    """The CPU's model name and its instruction sets among ``_ISA_FLAGS`` (Linux; elsewhere what
+    ``platform`` says and no flags)."""
+    model, flags = _read_cpuinfo()
     return model or platform.processor() or None, [flag for flag in _ISA_FLAGS if flag in flags]
 
 

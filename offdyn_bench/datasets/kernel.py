@@ -31,6 +31,7 @@ from collections.abc import Callable, Mapping
 from typing import IO, Any
 
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.versions import cpu_flags
 
 DATASET_BLAS_KERNEL = "Haswell"
 KERNEL_ENV = "OFFDYN_BLAS_KERNEL"
@@ -84,19 +85,6 @@ def numpy_blas() -> BlasInfo:
         if library.get("user_api") == "blas":
             return BlasInfo(library.get("internal_api"), library.get("architecture"))
     return BlasInfo(None, None)
-
-
-def cpu_flags() -> frozenset[str]:
-    """The CPU's instruction-set flags from ``/proc/cpuinfo`` (empty where it cannot be read)."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as cpuinfo:
-            for line in cpuinfo:
-                key, _, value = line.partition(":")
-                if key.strip() == "flags":
-                    return frozenset(value.split())
-    except OSError:
-        pass
-    return frozenset()
 
 
 def requested_kernel(environ: Mapping[str, str] | None = None) -> str:
