@@ -733,10 +733,12 @@ _PUBLISHED_CLAIMS = {
     # Five seeds each: H2O 15.2 above DARC on the means, 24.9 below CQL's.
     ("h2o > darc", "hopper-kinematic-foot-medium", "source-policy"): ((5, 5), True, 555.2, 540.0, 0.56),
     ("h2o > cql", "hopper-kinematic-foot-medium", "source-policy"): ((5, 5), False, 555.2, 580.1, 0.40),
-    # Five seeds each on friction; no CQL run there yet, so no "h2o > cql" row.
     ("h2o > darc", "hopper-friction-0.5", "source-policy"): ((5, 5), True, 737.6, 597.3, 0.60),
-    # Five seeds on morph-thigh (it held on seed 0 alone); no CQL run there yet.
+    # Above CQL on the means by 30.9, yet CQL's seeds (681.7 to 735.0) sit tighter: P 0.40.
+    ("h2o > cql", "hopper-friction-0.5", "source-policy"): ((5, 5), True, 737.6, 706.7, 0.40),
+    # Five seeds on morph-thigh (it held on seed 0 alone).
     ("h2o > darc", "hopper-morph-thigh-medium", "source-policy"): ((5, 5), False, 544.2, 836.5, 0.36),
+    ("h2o > cql", "hopper-morph-thigh-medium", "source-policy"): ((5, 5), True, 544.2, 250.3, 0.68),
     # Five seeds on joint noise: 117.6 above DARC on the means (P 0.90 on two seeds, 0.55 on four);
     # no CQL run there yet.
     ("h2o > darc", "hopper-joint-noise-0.5", "source-policy"): ((5, 5), True, 862.1, 744.5, 0.64),
