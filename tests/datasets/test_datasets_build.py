@@ -165,6 +165,33 @@ def test_a_shipped_dataset_rebuilds_byte_for_byte() -> None:
     assert result.entry.archive == entry.archive
 
 
+def test_the_libraries_the_manifest_records_are_the_ones_a_fresh_install_gets() -> None:
+    """Each library the manifest's entries record in `built_with` that pyproject.toml depends on is
+    pinned there to exactly that version, so a fresh clone rebuilds the recorded bytes; a looser
+    requirement would let a new release (numpy's bundled OpenBLAS, its SIMD math) change them, and
+    the rebuild test above would only skip."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.version import Version
+
+    from offdyn_bench.datasets.manifest import read_manifest
+
+    project = tomllib.loads((pathlib.Path(__file__).parents[2] / "pyproject.toml").read_text())["project"]
+    requirements = {Requirement(line).name: Requirement(line) for line in project["dependencies"]}
+    recorded: dict[str, set[str]] = {}
+    for entry in read_manifest().entries.values():
+        for library, version in (entry.built_with or {}).items():
+            if library in requirements and version is not None:
+                recorded.setdefault(library, set()).add(version)
+    assert {"numpy", "mujoco", "minari", "gymnasium", "torch"} <= set(recorded)
+    for library, versions_seen in recorded.items():
+        specifiers = list(requirements[library].specifier)
+        assert [spec.operator for spec in specifiers] == ["=="], f"{library}: pinned as {specifiers}, expected =="
+        # torch records its local build tag (2.13.0+cpu); the pin names the release.
+        assert {Version(version).public for version in versions_seen} == {specifiers[0].version}, library
+
+
 def test_a_relative_datasets_root_builds_and_installs(tiny_recipe: MakeRecipe, tmp_path: pathlib.Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """`offdyn-bench demo --out demo-out` passes a relative root; Minari's size computation would
