@@ -716,8 +716,8 @@ _PUBLISHED_CLAIMS = {
     (_DAP_U, "halfcheetah-gravity-0.5", "source-policy"): ((5, 5), False, 2180.1, 2889.2, 0.16),
     # Five seeds (2857.5, 2624.8, 3129.0, 2749.1, 2889.5); it read P 0.80 on seed 0 and 0.60 on three.
     (_DAP_U, "halfcheetah-kinematic-bthigh-hard", "source-policy"): ((5, 5), True, 2850.0, 2789.3, 0.64),
-    # Two seeds of five so far; they fall at once, as DAP's do.
-    (_DAP_U, "ant-friction-5.0", "source-policy"): ((2, 5), False, 0.3, 6.8, 0.20),
+    # Three seeds of five so far (-2.3, 2.8, 11.4); they fall at once, as DAP's do.
+    (_DAP_U, "ant-friction-5.0", "source-policy"): ((3, 5), False, 4.0, 6.8, 0.33),
     # Five seeds (807.9, 920.2, 828.0, 326.2, 830.0), the first published trainings that timed their
     # machine; it read P 0.90 on two seeds and 0.70 on four.
     (_DAP_U, "hopper-joint-noise-0.5", "source-policy"): ((5, 5), True, 742.4, 667.7, 0.76),
@@ -742,6 +742,8 @@ _PUBLISHED_CLAIMS = {
     # Five seeds on joint noise: 117.6 above DARC on the means (P 0.90 on two seeds, 0.55 on four);
     # no CQL run there yet.
     ("h2o > darc", "hopper-joint-noise-0.5", "source-policy"): ((5, 5), True, 862.1, 744.5, 0.64),
+    # H2O's first Walker2d seed, its critic diverging (PROTOCOL §9), against DARC's four.
+    ("h2o > darc", "walker2d-gravity-2.0", "source-policy"): ((1, 4), False, -53.7, 237.2, 0.0),
 }
 # The H2O paper claims its rows on Table 1's HalfCheetah settings only; every other H2O row is "not
 # claimed here", so a newly published pair needs no entry.
