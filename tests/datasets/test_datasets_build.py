@@ -178,7 +178,7 @@ def test_the_libraries_the_manifest_records_are_the_ones_a_fresh_install_gets() 
     from offdyn_bench.datasets.manifest import read_manifest
 
     project = tomllib.loads((pathlib.Path(__file__).parents[2] / "pyproject.toml").read_text())["project"]
-    requirements = {Requirement(line).name: Requirement(line) for line in project["dependencies"]}
+    requirements = {requirement.name: requirement for requirement in map(Requirement, project["dependencies"])}
     recorded: dict[str, set[str]] = {}
     for entry in read_manifest().entries.values():
         for library, version in (entry.built_with or {}).items():
