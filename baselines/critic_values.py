@@ -13,7 +13,9 @@ backup uses it):
 * ``q_policy_at_data_states``: Q of the policy's deterministic action at the dataset's states,
   ``q_random_at_data_states``: of uniformly random actions there (one per state);
 * where the checkpoint holds a simulated replay buffer (H2O's, DARC's): ``q_buffer`` on its
-  transitions and ``q_policy_at_buffer_states``.
+  transitions, beside ``buffer_return_to_go`` (what the policies that filled it earned in the
+  simulator; episodes are told apart by their termination flags and by a next state that is not
+  the following row's state, a reset), and ``q_policy_at_buffer_states``.
 
 A policy action valued far above the data's actions, and both far above the data's return, is the
 signature of backups through actions nothing penalises. A critic that backs up the entropy term
@@ -60,6 +62,8 @@ class CriticValues:
     q_policy_at_data_states: float
     q_random_at_data_states: float
     buffer_rows: int | None
+    buffer_return_to_go: float | None
+    buffer_rows_terminated: float | None
     q_buffer: float | None
     q_policy_at_buffer_states: float | None
 
@@ -86,6 +90,20 @@ def discounted_return_to_go(rewards: np.ndarray, terminations: np.ndarray, trunc
         following = rewards[i] + discount * following
         returns[i], exact[i] = following, following_exact
     return returns, exact
+
+
+def _buffer_in_order(tensors: dict[str, torch.Tensor], member: int) -> dict[str, np.ndarray]:
+    """One seed's replay buffer rows oldest first (a full ring buffer starts at its write position),
+    with the episode ends that its stored flags and its resets imply."""
+    size, position = (int(x) for x in tensors["buffer.counters"])
+    rows = {name: tensors[f"buffer.{name}"][member].double().numpy()
+            for name in ("observations", "actions", "rewards", "next_observations", "terminations")}
+    if 0 < position < size:  # wrapped: the oldest row is the next to be overwritten
+        rows = {name: np.roll(array, -position, axis=0) for name, array in rows.items()}
+    resets = np.zeros(size, dtype=bool)
+    resets[:-1] = np.any(rows["next_observations"][:-1] != rows["observations"][1:], axis=1)
+    rows["truncations"] = resets & (rows["terminations"] == 0)
+    return rows
 
 
 def _params(tensors: dict[str, torch.Tensor], name: str) -> list[torch.Tensor]:
@@ -149,11 +167,15 @@ def read_critic_values(run_dir: str | Path, checkpoint: str | Path | None = None
     out = []
     with torch.no_grad():
         for member, seed in enumerate(config["seeds"]):
-            buffer_values: tuple[int | None, float | None, float | None] = (None, None, None)
+            buffer_values: tuple[int | None, float | None, float | None, float | None, float | None] = (
+                None, None, None, None, None)
             if has_buffer:
-                states = tensors["buffer.observations"][member].float()
-                buffer_values = (int(states.shape[0]),
-                                 _min_q(critic, member, states, tensors["buffer.actions"][member].float()),
+                rows = _buffer_in_order(tensors, member)
+                buffer_returns, buffer_exact = discounted_return_to_go(
+                    rows["rewards"], rows["terminations"], rows["truncations"], discount)
+                states = torch.as_tensor(rows["observations"], dtype=torch.float32)
+                buffer_values = (len(buffer_returns), float(buffer_returns.mean()), float(buffer_exact.mean()),
+                                 _min_q(critic, member, states, torch.as_tensor(rows["actions"], dtype=torch.float32)),
                                  _min_q(critic, member, states, _policy_actions(actor, member, states)))
             out.append(CriticValues(
                 seed=int(seed), step=int(trainer.get("step", -1)), discount=discount,
@@ -163,5 +185,7 @@ def read_critic_values(run_dir: str | Path, checkpoint: str | Path | None = None
                 q_policy_at_data_states=_min_q(critic, member, data.observations,
                                                _policy_actions(actor, member, data.observations)),
                 q_random_at_data_states=_min_q(critic, member, data.observations, random_actions),
-                buffer_rows=buffer_values[0], q_buffer=buffer_values[1], q_policy_at_buffer_states=buffer_values[2]))
+                buffer_rows=buffer_values[0], buffer_return_to_go=buffer_values[1],
+                buffer_rows_terminated=buffer_values[2], q_buffer=buffer_values[3],
+                q_policy_at_buffer_states=buffer_values[4]))
     return out

@@ -2,9 +2,10 @@
 
     PYTHONPATH=. .venv/bin/python scripts/critic_values.py RUN_DIR... [--every-checkpoint] [--jsonl FILE]
 
-One row per run, checkpoint and training seed: the data's discounted return-to-go, the twin
+One row per run, checkpoint and training seed: the data's discounted return-to-go ("G"), the twin
 critics' minimum on the data's transitions, at the policy's action and at random actions on the
-data's states, and on the simulated buffer where the checkpoint holds one. ``--every-checkpoint``
+data's states, and, where the checkpoint holds a simulated buffer, its return-to-go, the critics
+on its transitions and at the policy's action on its states. ``--every-checkpoint``
 reads each checkpoint the run keeps (the newest two), not only the newest; ``--jsonl`` appends
 each row as a JSON line (a run followed during training is read again and again: rows of a
 checkpoint already in the file are not written twice).
@@ -22,7 +23,7 @@ from baselines.checkpoint import checkpoints
 from baselines.critic_values import CriticValues, read_critic_values
 from offdyn_bench.errors import OffdynError
 
-COLUMNS = ("run", "step", "seed", "data G", "Q data", "Q pi(s)", "Q rand", "Q buffer", "Q pi(buf)")
+COLUMNS = ("run", "step", "seed", "data G", "Q data", "Q pi(s)", "Q rand", "buffer G", "Q buffer", "Q pi(buf)")
 
 
 def _row(run: Path, values: CriticValues) -> tuple[str, ...]:
@@ -30,7 +31,8 @@ def _row(run: Path, values: CriticValues) -> tuple[str, ...]:
         return "-" if value is None else f"{value:,.1f}"
 
     return (str(run), str(values.step), str(values.seed), cell(values.data_return_to_go), cell(values.q_data),
-            cell(values.q_policy_at_data_states), cell(values.q_random_at_data_states), cell(values.q_buffer),
+            cell(values.q_policy_at_data_states), cell(values.q_random_at_data_states),
+            cell(values.buffer_return_to_go), cell(values.q_buffer),
             cell(values.q_policy_at_buffer_states))
 
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from baselines.checkpoint import latest_checkpoint, load_checkpoint
-from baselines.critic_values import discounted_return_to_go, read_critic_values
+from baselines.critic_values import _buffer_in_order, discounted_return_to_go, read_critic_values
 from baselines.data import TransitionDataset
 from baselines.sac import SACAgent, SACConfig
 from baselines.train import train
@@ -36,6 +36,26 @@ def test_return_to_go_refuses_mismatched_rows_and_a_bad_discount():
         discounted_return_to_go(np.ones(3), np.zeros(2, bool), np.zeros(3, bool), 0.9)
     with pytest.raises(OffdynError, match=r"discount=1.5: expected a number in \[0, 1\]"):
         discounted_return_to_go(np.ones(3), np.zeros(3, bool), np.zeros(3, bool), 1.5)
+
+
+def test_a_wrapped_replay_buffer_is_read_oldest_first_and_split_at_its_resets():
+    # Five chronological steps: an episode of two that terminates, then one of three that is cut
+    # by a reset (next state 9 is not the following state 5) and an unfinished one; the ring buffer
+    # of capacity 5 has wrapped twice, so row 0 holds the fourth step.
+    observations = np.array([[0.0], [1.0], [4.0], [5.0], [6.0]])
+    next_observations = np.array([[1.0], [2.0], [9.0], [6.0], [7.0]])
+    order = [3, 4, 0, 1, 2]  # storage row -> chronological step
+    stored = {"observations": observations[order], "next_observations": next_observations[order],
+              "actions": np.zeros((5, 1)), "rewards": np.array([1.0, 2.0, 3.0, 4.0, 5.0])[order],
+              "terminations": np.array([0.0, 1.0, 0.0, 0.0, 0.0])[order]}
+    tensors = {f"buffer.{name}": torch.as_tensor(array)[None] for name, array in stored.items()}
+    tensors["buffer.counters"] = torch.tensor([5, 2])
+    rows = _buffer_in_order(tensors, 0)
+    np.testing.assert_array_equal(rows["observations"][:, 0], [0.0, 1.0, 4.0, 5.0, 6.0])
+    assert rows["truncations"].tolist() == [False, False, True, False, False]
+    returns, exact = discounted_return_to_go(rows["rewards"], rows["terminations"], rows["truncations"], 1.0)
+    np.testing.assert_allclose(returns, [3.0, 2.0, 3.0, 9.0, 5.0])
+    assert exact.tolist() == [True, True, False, False, False]
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +86,8 @@ def test_values_are_what_the_runs_own_agent_computes_for_each_seed(h2o_run, pend
         assert entry.q_policy_at_data_states == pytest.approx(float(q_policy[member]), rel=1e-5)
         assert entry.q_buffer == pytest.approx(float(q_buffer[member]), rel=1e-5)
         assert entry.buffer_rows == 160 and entry.data_rows == len(data)
+        # The pendulum pays 1 a step alive: its buffer's episodes earn between 1 and 1/(1-0.99).
+        assert 1.0 <= entry.buffer_return_to_go <= 100.0 and 0.0 < entry.buffer_rows_terminated <= 1.0
         assert entry.discount == 0.99 and entry.backs_up_entropy is False  # H2O's official setting
     assert values[0].q_data != values[1].q_data  # each seed reads its own critics
     returns, _ = discounted_return_to_go(data.rewards, data.terminations, data.truncations, 0.99)
