@@ -18,9 +18,10 @@ backup uses it):
   the following row's state, a reset), and ``q_policy_at_buffer_states``.
 
 A policy action valued far above the data's actions, and both far above the data's return, is the
-signature of backups through actions nothing penalises. A critic that backs up the entropy term
-(``backs_up_entropy``) holds entropy bonuses too, so its values sit above a return of rewards
-alone by design.
+signature of backups through actions nothing penalises; every action valued alike, and far above
+what was earned, is values drifting with the states. A critic that backs up the entropy term
+(``backs_up_entropy``) holds entropy bonuses too, and DARC's reward carries its correction, so
+their values differ from a return of rewards alone by design.
 
 Runs whose critic does not take (observation, action), such as DAP's critic of (a_s, a_t), are
 refused with a message saying so.
