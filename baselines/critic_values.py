@@ -137,6 +137,10 @@ def read_critic_values(run_dir: str | Path, checkpoint: str | Path | None = None
         raise OffdynError(f"{str(run_dir)!r} is not a training run folder (no config.json)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise OffdynError(f"{str(run_dir)!r}: config.json cannot be read ({error})") from None
+    if not isinstance(config, dict) or not isinstance(config.get("task"), str) or not (
+            isinstance(config.get("seeds"), list) and all(isinstance(seed, int) for seed in config["seeds"])):
+        raise OffdynError(f"{str(run_dir)!r}: config.json does not name a task and a list of integer seeds; "
+                          "expected the config.json that offdyn-bench train writes")
     if not config.get("dataset"):
         raise OffdynError(f"{str(run_dir)!r} trained without a target dataset ({config.get('algo')}); "
                           "there is no data to hold its values against")
@@ -164,7 +168,7 @@ def read_critic_values(run_dir: str | Path, checkpoint: str | Path | None = None
     returns, exact = discounted_return_to_go(dataset.rewards, dataset.terminations, dataset.truncations, discount)
     data = dataset.to_batch(action_space)
     random_actions = torch.rand(data.actions.shape, generator=torch.Generator().manual_seed(RANDOM_ACTIONS_SEED)) * 2 - 1
-    has_buffer = "buffer.observations" in tensors
+    has_buffer = "buffer.observations" in tensors and int(tensors["buffer.counters"][0]) > 0
     out = []
     with torch.no_grad():
         for member, seed in enumerate(config["seeds"]):
