@@ -30,7 +30,6 @@ refused with a message saying so.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +37,7 @@ import torch
 
 from baselines.checkpoint import latest_checkpoint, load_checkpoint
 from baselines.networks import mlp
+from baselines.run_folder import CONFIG_FILE, read_config
 from offdyn_bench.envs import flat_observations
 from offdyn_bench.errors import OffdynError
 from offdyn_bench.tasks import get_task
@@ -131,13 +131,10 @@ def read_critic_values(run_dir: str | Path, checkpoint: str | Path | None = None
     from baselines.train import DATASET_SEED
 
     run_dir = Path(run_dir)
-    try:
-        config = json.loads((run_dir / "config.json").read_text())
-    except FileNotFoundError:
-        raise OffdynError(f"{str(run_dir)!r} is not a training run folder (no config.json)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise OffdynError(f"{str(run_dir)!r}: config.json cannot be read ({error})") from None
-    if not isinstance(config, dict) or not isinstance(config.get("task"), str) or not (
+    if not (run_dir / CONFIG_FILE).exists():
+        raise OffdynError(f"{str(run_dir)!r} is not a training run folder (no {CONFIG_FILE})")
+    config = read_config(run_dir)
+    if not isinstance(config.get("task"), str) or not (
             isinstance(config.get("seeds"), list) and all(isinstance(seed, int) for seed in config["seeds"])):
         raise OffdynError(f"{str(run_dir)!r}: config.json does not name a task and a list of integer seeds; "
                           "expected the config.json that offdyn-bench train writes")
@@ -162,7 +159,7 @@ def read_critic_values(run_dir: str | Path, checkpoint: str | Path | None = None
                           f"{actor[-1].shape[-1]} outputs; expected {observation_dim + action_dim} (observation and "
                           f"action) and {2 * action_dim} (a Gaussian over one action), as SAC, CQL, H2O and DARC "
                           f"have ({config.get('algo')}'s critic values are not read here)")
-    sac_config = config.get("config", {}).get("sac", {})
+    sac_config = config["config"].get("sac", {})
     discount = float(sac_config.get("discount", 0.99))
     dataset, _ = load_dataset(str(config["dataset"]), pair, DATASET_SEED)
     returns, exact = discounted_return_to_go(dataset.rewards, dataset.terminations, dataset.truncations, discount)

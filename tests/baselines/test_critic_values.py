@@ -114,6 +114,6 @@ def test_a_run_without_target_data_and_a_folder_that_is_no_run_are_refused(tmp_p
     assert "is not a training run folder" in capsys.readouterr().err
     edited = tmp_path / "edited"
     edited.mkdir()
-    (edited / "config.json").write_text('{"task": "hopper-gravity-0.5", "seeds": "0"}')
+    (edited / "config.json").write_text('{"task": "hopper-gravity-0.5", "seeds": "0", "config": {}}')
     with pytest.raises(OffdynError, match="does not name a task and a list of integer seeds"):
         read_critic_values(edited)
