@@ -745,7 +745,8 @@ _PUBLISHED_CLAIMS = {
     # H2O's five Walker2d seeds (-53.7, -34.7, 122.3, 158.2, 127.2), their critics' values running
     # away (PROTOCOL §9); it read 23.3 on three seeds.
     ("h2o > darc", "walker2d-gravity-2.0", "source-policy"): ((5, 5), False, 63.9, 246.5, 0.0),
-    # The first seed of each on HalfCheetah's core gravity pair (832.7 against 3,094.8).
+    # HalfCheetah's core gravity pair, five seeds each: H2O 832.7, 895.3, 793.8, 957.6, 472.9 against
+    # DARC 3,094.8, 2,787.7, 2,712.1, 1,589.5, 3,600.3 (PROTOCOL §9); it read 832.7 against 3,094.8 on seed 0.
     ("h2o > darc", "halfcheetah-gravity-0.5", "source-policy"): ((5, 5), False, 790.4, 2756.9, 0.0),
 }
 # The H2O paper claims its rows on Table 1's HalfCheetah settings only; every other H2O row is "not
