@@ -129,6 +129,44 @@ def train_command_settings(command: str) -> dict[str, str] | None:
             for key, _, value in [word.partition("=")]}
 
 
+def _check_run_files(run_dir: pathlib.Path, config: Any, result: Any) -> None:
+    """A hand-edited or damaged config.json or result.json is a clear error here, not a KeyError
+    or TypeError halfway through loading the checkpoint."""
+    if not isinstance(config, dict):
+        raise EvaluationError(f"{str(run_dir)!r}: config.json holds a JSON {type(config).__name__}; expected "
+                              "the object `offdyn-bench train` writes, with the run's algo, task, steps and seeds")
+    wrong = []
+    for key in ("algo", "task"):
+        if not isinstance(config.get(key), str) or not config[key]:
+            wrong.append(f"{key!r} {_shown(config, key)} (expected a name)")
+    steps = config.get("steps")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        wrong.append(f"'steps' {_shown(config, 'steps')} (expected a positive whole number)")
+    seeds = config.get("seeds")
+    if (not isinstance(seeds, list) or not seeds
+            or any(isinstance(seed, bool) or not isinstance(seed, int) for seed in seeds)):
+        wrong.append(f"'seeds' {_shown(config, 'seeds')} (expected a non-empty list of whole numbers)")
+    if wrong:
+        raise EvaluationError(f"{str(run_dir)!r}: config.json is damaged: " + "; ".join(wrong)
+                              + ". `offdyn-bench train` writes it; train again into a new --out folder")
+    if not isinstance(result, dict):
+        raise EvaluationError(f"{str(run_dir)!r}: result.json holds a JSON {type(result).__name__}; expected "
+                              "the object `offdyn-bench train` writes when a run finishes")
+
+
+def _check_members(run_dir: pathlib.Path, seeds: list[int], members: int) -> None:
+    # One trained policy per seed: a seeds list edited after training would pair seeds with the
+    # wrong policies, or index past the checkpoint's last one.
+    if len(seeds) != members:
+        raise EvaluationError(f"{str(run_dir)!r}: config.json lists {len(seeds)} training seed(s) {seeds}, but its "
+                              f"checkpoint holds {members} policy(ies); expected one per seed, as "
+                              "`offdyn-bench train` writes them")
+
+
+def _shown(config: dict[str, Any], key: str) -> str:
+    return f"is {config[key]!r}" if key in config else "is missing"
+
+
 def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
     """One deterministic agent per training seed of a finished ``offdyn-bench train`` run."""
     from baselines.checkpoint import latest_checkpoint, load_checkpoint
@@ -146,6 +184,7 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
         raise EvaluationError(f"{str(run_dir)!r} has no {what}: {hint}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise EvaluationError(f"{str(run_dir)!r}: config.json or result.json cannot be read ({error})") from None
+    _check_run_files(run_dir, config, result)
     try:
         checkpoint = latest_checkpoint(run_dir)
     except OffdynError as error:
@@ -175,6 +214,7 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
             policies = deployed_policies(tensors, space.low, space.high)
         except OffdynError as error:
             raise EvaluationError(f"{str(run_dir)!r}: {error}") from None
+        _check_members(run_dir, config["seeds"], len(policies))
         role = "robot" if "robot.log_std" in tensors else "simulator"
         mean_params = sorted(k for k in tensors if k.startswith(f"{role}.mean."))
         for member, seed in enumerate(config["seeds"]):
@@ -183,6 +223,8 @@ def load_run_agents(run_dir: str | os.PathLike[str]) -> LoadedAgents:
         params = None
     elif not params or len(params) % 2:
         raise EvaluationError(f"{str(run_dir)!r}: the checkpoint holds no actor network")
+    else:
+        _check_members(run_dir, config["seeds"], int(params[0].shape[0]))
     for member, seed in enumerate(config["seeds"] if params is not None else []):
         layers = []
         for i in range(len(params) // 2):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shlex
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -218,6 +219,39 @@ def test_bad_run_folders_are_clear_errors(finished_run, tmp_path):
     blocker.write_text("")
     with pytest.raises(EvaluationError, match="is a file"):
         evaluate(finished_run, progress=False, out=blocker / "evaluation.json")
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda config: [], "config.json holds a JSON list; expected the object `offdyn-bench train` writes"),
+    (lambda config: {**config, "steps": "60"}, "'steps' is '60' \\(expected a positive whole number\\)"),
+    (lambda config: {k: v for k, v in config.items() if k != "task"}, "'task' is missing \\(expected a name\\)"),
+    (lambda config: {**config, "seeds": [3, True]}, "'seeds' is \\[3, True\\] \\(expected a non-empty list"),
+    (lambda config: {**config, "seeds": [3, 4, 5]},
+     r"lists 3 training seed\(s\) \[3, 4, 5\], but its checkpoint holds 2 policy\(ies\)"),
+])
+def test_a_damaged_config_of_a_finished_run_is_a_clear_error_and_writes_nothing(
+        finished_run, tmp_path, edit, message):
+    """A finished run whose config.json was hand-edited or damaged is refused before any episode
+    runs, saying which setting is wrong; the CLI prints it without a traceback."""
+    damaged = tmp_path / "run"
+    # Without the records the module's other tests write into the run folder.
+    shutil.copytree(finished_run, damaged, ignore=shutil.ignore_patterns("evaluation*.json"))
+    config = json.loads((damaged / "config.json").read_text())
+    (damaged / "config.json").write_text(json.dumps(edit(config)))
+    with pytest.raises(EvaluationError, match=message):
+        evaluate(damaged, progress=False, out=tmp_path / "e.json")
+    assert not (tmp_path / "e.json").exists()
+    result = CliRunner().invoke(app, ["evaluate", "--agent", str(damaged), "--no-progress"])
+    assert result.exit_code == 2 and result.output.startswith("error: ") and "Traceback" not in result.output
+    assert not (damaged / "evaluation.json").exists()
+
+
+def test_a_damaged_result_of_a_finished_run_is_a_clear_error(finished_run, tmp_path):
+    damaged = tmp_path / "run"
+    shutil.copytree(finished_run, damaged)
+    (damaged / "result.json").write_text("[1, 2]")
+    with pytest.raises(EvaluationError, match="result.json holds a JSON list; expected the object"):
+        evaluate(damaged, progress=False, out=tmp_path / "e.json")
 
 
 def test_evaluate_cli(finished_run, tmp_path):
