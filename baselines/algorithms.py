@@ -17,6 +17,7 @@ from baselines import cql, dap, dara, darc, h2o, h2o_offline_source, matl, onlin
 from baselines.method import Method, MethodContext
 from baselines.limits import config_problems
 from offdyn_bench.errors import InvalidParameterError, OffdynError, UnknownNameError
+from offdyn_bench.json_values import is_integer, is_number
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,9 +168,9 @@ def _parse(raw: str, current: Any, key: str, algo: str) -> Any:
     if isinstance(current, bool):
         ok = isinstance(value, bool)
     elif isinstance(current, int):
-        ok = isinstance(value, int) and not isinstance(value, bool)
+        ok = is_integer(value)
     elif isinstance(current, float):
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        ok = is_number(value)
         value = float(value) if ok else value
     elif isinstance(current, tuple):
         ok = isinstance(value, list)

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from collections.abc import Callable
 from typing import Any
+
+from offdyn_bench.json_values import is_finite_number, is_integer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -23,22 +24,14 @@ class Limit:
     expected: str
 
 
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
 def integer(minimum: int) -> Limit:
-    return Limit(lambda v: _is_int(v) and v >= minimum, f"an integer >= {minimum}")
+    return Limit(lambda v: is_integer(v) and v >= minimum, f"an integer >= {minimum}")
 
 
 def number(low: float | None = None, high: float | None = None, *, low_open: bool = False) -> Limit:
     """A finite number in ``[low, high]`` (``(low, high]`` with ``low_open``); None: unbounded."""
     def accepts(v: Any) -> bool:
-        if not _is_number(v):
+        if not is_finite_number(v):
             return False
         above = low is None or (v > low if low_open else v >= low)
         return above and (high is None or v <= high)
@@ -64,7 +57,7 @@ def one_of(*choices: str) -> Limit:
 
 def layer_sizes(allow_empty: bool) -> Limit:
     return Limit(lambda v: isinstance(v, (tuple, list)) and (allow_empty or len(v) > 0)
-                 and all(_is_int(x) and x >= 1 for x in v),
+                 and all(is_integer(x) and x >= 1 for x in v),
                  f"a {'' if allow_empty else 'non-empty '}list of integers >= 1, e.g. [256, 256]")
 
 

@@ -67,6 +67,7 @@ from baselines.run_folder import (CONFIG_FILE, METRICS_FILE, RESULT_FILE, Traini
                                   write_lines_atomic)
 from offdyn_bench.envs import flat_observations
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.json_values import is_integer
 from offdyn_bench.machine_speed import reference_update_seconds
 from offdyn_bench.protocol.definition import ProtocolError
 from offdyn_bench.protocol.training import resolve_run
@@ -268,7 +269,7 @@ def _check_arguments(**arguments: int | None) -> None:
         minimum = 0 if name == "threads" else 1
         if value is None and name not in ("steps", "n_seeds", "eval_episodes"):
             continue
-        if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        if not is_integer(value) or value < minimum:
             flag = "--" + name.replace("_", "-")
             raise OffdynError(f"{flag}={value!r}: expected an integer >= {minimum}")
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from offdyn_bench.envs import flat_observations
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.json_values import is_integer, is_number
 from offdyn_bench.protocol.definition import (
     BUDGETS,
     EPISODE_SEEDS,
@@ -140,11 +141,11 @@ def _check_run_files(run_dir: pathlib.Path, config: Any, result: Any) -> None:
         if not isinstance(config.get(key), str) or not config[key]:
             wrong.append(f"{key!r} {_shown(config, key)} (expected a name)")
     steps = config.get("steps")
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+    if not is_integer(steps) or steps < 1:
         wrong.append(f"'steps' {_shown(config, 'steps')} (expected a positive whole number)")
     seeds = config.get("seeds")
     if (not isinstance(seeds, list) or not seeds
-            or any(isinstance(seed, bool) or not isinstance(seed, int) for seed in seeds)):
+            or not all(is_integer(seed) for seed in seeds)):
         wrong.append(f"'seeds' {_shown(config, 'seeds')} (expected a non-empty list of whole numbers)")
     if wrong:
         raise EvaluationError(f"{str(run_dir)!r}: config.json is damaged: " + "; ".join(wrong)
@@ -565,5 +566,5 @@ def check_evaluation_record(record: Any, where: str = "an evaluation") -> None:
             raise wrong(f"seeds[{i}].seed", "a non-negative integer")
         returns = entry.get("returns")
         if not isinstance(returns, list) or not returns or not all(
-                isinstance(x, (int, float)) and not isinstance(x, bool) for x in returns):
+                is_number(x) for x in returns):
             raise wrong(f"seeds[{i}].returns", "a non-empty list of numbers")

@@ -11,6 +11,8 @@ import dataclasses
 import mujoco
 import numpy as np
 
+from offdyn_bench.json_values import is_number
+
 # Row prefixes of MjModel array fields and the object type that names each row.
 _ROW_OBJECTS: dict[str, mujoco.mjtObj] = {
     "body_": mujoco.mjtObj.mjOBJ_BODY,
@@ -79,7 +81,7 @@ def _array_fields(obj: object, prefix: str = "") -> dict[str, np.ndarray]:
             continue
         if isinstance(value, np.ndarray) and value.dtype.kind in "fiub":
             out[prefix + name] = value
-        elif isinstance(value, (int, float)) and not isinstance(value, bool) and prefix:
+        elif is_number(value) and prefix:
             out[prefix + name] = np.array(value)
     return out
 

@@ -20,6 +20,7 @@ from typing import Any
 
 from offdyn_bench.datasets.recipes import ASSETS_DIR, Recipe, json_type, default_recipe, parse_dataset_id
 from offdyn_bench.errors import OffdynError, UnknownNameError
+from offdyn_bench.json_values import is_integer
 
 MANIFEST_FORMAT = "offdyn-datasets-manifest/1"
 MANIFEST_PATH = ASSETS_DIR / "datasets.json"
@@ -113,7 +114,7 @@ def _object(where: str, key: str, value: Any) -> Mapping[str, Any] | None:
 
 
 def _count(where: str, key: str, value: Any) -> int | None:
-    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 0):
+    if value is not None and (not is_integer(value) or value < 0):
         raise ManifestError(f"{where}: {key!r} must be a non-negative integer or null, got {value!r:.60}")
     return value
 

@@ -22,6 +22,7 @@ from collections.abc import Mapping
 from typing import Any, Literal
 
 from offdyn_bench.errors import OffdynError, UnknownNameError
+from offdyn_bench.json_values import is_integer
 from offdyn_bench.tasks import TASKS, TaskPair, get_task
 
 Quality = Literal["random", "source-policy", "human-operator", "source", "medium", "medium-replay", "medium-expert"]
@@ -375,7 +376,7 @@ def replay_transitions(policy: str) -> int:
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise RecipeError(f"{sidecar}: no training.checkpoint_step ({error!r}); it is not a checkpoint policy of "
                           "scripts/make_h2o_behaviours.py") from None
-    if not isinstance(step, int) or isinstance(step, bool) or step < 1:
+    if not is_integer(step) or step < 1:
         raise RecipeError(f"{sidecar}: training.checkpoint_step is {step!r}; expected an integer >= 1")
     return step
 

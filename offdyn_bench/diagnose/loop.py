@@ -43,6 +43,7 @@ from offdyn_bench.diagnose.systematic import (
 )
 from offdyn_bench.engines.gap import engine_gap_note
 from offdyn_bench.errors import InvalidParameterError
+from offdyn_bench.json_values import is_integer, is_number
 from offdyn_bench.versions import versions
 
 # The H-step error needs a window of H steps inside one episode; Gymnasium's MuJoCo tasks end
@@ -92,7 +93,7 @@ class DiagnosisSettings:
                     "screen_rows": (10, 10**6), "fit_rows": (10, 10**6), "seed": (0, 2**32 - 1)}
         for name, (low, high) in integers.items():
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            if not is_integer(value) or not low <= value <= high:
                 raise InvalidParameterError("diagnosis settings", name, value, f"an integer in [{low}, {high}]")
         if self.search_target not in SEARCH_TARGETS:
             raise InvalidParameterError("diagnosis settings", "search_target", self.search_target,
@@ -102,7 +103,7 @@ class DiagnosisSettings:
                      "heldout_fraction": (0.05, 0.95)}
         for name, (low, high) in fractions.items():
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= high:
+            if not is_number(value) or not low <= value <= high:
                 raise InvalidParameterError("diagnosis settings", name, value, f"a number in [{low:g}, {high:g}]")
 
 

@@ -35,6 +35,7 @@ from baselines.run_folder import (
     write_json_atomic,
 )
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.json_values import is_finite_number
 from offdyn_bench.sweep.backends import Backend, LocalBackend, RayBackend, cpus_for, default_workers
 from offdyn_bench.sweep.execute import AttemptOutcome
 from offdyn_bench.sweep.runs import (
@@ -59,7 +60,7 @@ Echo = Callable[[str], None]
 
 
 def _is_seconds(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0
+    return is_finite_number(value) and value >= 0
 
 
 def _seconds_of(history: list[Any], key: str) -> float:

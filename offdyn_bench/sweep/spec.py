@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.json_values import is_finite_number, is_integer
 from offdyn_bench.protocol.definition import TRACKS
 
 CORE = "core"
@@ -164,11 +164,11 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
                                "task")
 
     seeds_value = data["seeds"]
-    if _is_int(seeds_value):
+    if is_integer(seeds_value):
         if not 1 <= seeds_value <= _MAX_SEEDS:
             raise fail("seeds", f"a count in [1, {_MAX_SEEDS}] (seeds 0..count-1) or a list of seeds")
         seeds = tuple(range(seeds_value))
-    elif isinstance(seeds_value, list) and seeds_value and all(_is_int(s) and s >= 0 for s in seeds_value):
+    elif isinstance(seeds_value, list) and seeds_value and all(is_integer(s) and s >= 0 for s in seeds_value):
         if len(set(seeds_value)) != len(seeds_value):
             raise fail("seeds", "distinct seeds")
         if len(seeds_value) > _MAX_SEEDS:
@@ -187,7 +187,7 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
                         "(explicit training steps, e.g. for a tiny test sweep)")
     if budget is not None and not isinstance(budget, str):
         raise fail("budget", "a protocol budget name: lite or full")
-    if steps is not None and not (_is_int(steps) and steps >= 1):
+    if steps is not None and not (is_integer(steps) and steps >= 1):
         raise fail("steps", "an integer >= 1")
 
     out_value = data["out"]
@@ -257,10 +257,6 @@ def parse_spec(data: Any, *, source: str = "sweep spec", out: Path | None = None
                      ray_address=ray_address)
 
 
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
 def _show(value: Any) -> str:
     text = json.dumps(value) if isinstance(value, (dict, list, str, int, float, bool, type(None))) else repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
@@ -270,7 +266,7 @@ def _int_key(data: Mapping[str, Any], key: str, default: int | None, low: int, h
     value = data.get(key)
     if value is None:
         return default
-    if not _is_int(value) or not low <= value <= high:
+    if not is_integer(value) or not low <= value <= high:
         raise fail(key, f"an integer in [{low}, {high}]")
     return value
 
@@ -279,8 +275,7 @@ def _number_key(data: Mapping[str, Any], key: str, default: float, zero_ok: bool
     value = data.get(key)
     if value is None:
         return default
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if not ok or value < 0 or (value == 0 and not zero_ok):
+    if not is_finite_number(value) or value < 0 or (value == 0 and not zero_ok):
         raise fail(key, "a number >= 0" if zero_ok else "a number > 0 (CPUs a run needs, e.g. 1 or 0.5)")
     return float(value)
 

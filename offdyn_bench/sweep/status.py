@@ -16,6 +16,7 @@ from collections.abc import Collection
 from typing import Any
 
 from baselines.run_folder import TrainingProgress, training_progress
+from offdyn_bench.json_values import is_integer
 from offdyn_bench.sweep.driver import (
     STATE_FILE,
     RunRecord,
@@ -110,8 +111,7 @@ def status_lines(status: SweepStatus, spec_path: str = "SPEC") -> list[str]:
     out, driver = status.spec.out, status.driver
     started, until = _moment(driver.get("started_at")), _moment(driver.get("starts_runs_until"))
     stored_capacity = driver.get("capacity")
-    capacity = (stored_capacity if isinstance(stored_capacity, int) and not isinstance(stored_capacity, bool)
-                and stored_capacity > 0 else None)
+    capacity = stored_capacity if is_integer(stored_capacity) and stored_capacity > 0 else None
     left = status.count("pending") + status.count("running")
     if status.driving:
         who = (f"pid {driver['pid']} on {driver['host']}" if isinstance(driver.get("pid"), int)

@@ -32,6 +32,7 @@ import numpy as np
 import scipy.linalg
 
 from offdyn_bench.errors import InvalidParameterError, UnknownNameError
+from offdyn_bench.json_values import is_integer, is_number
 from offdyn_bench.wheel_legged.env import CONTROL_HZ, MODEL_PATH, TARGET_VELOCITY, TASK_NAMES, TILT, WHEEL, X
 
 # LQR weights on (tilt [rad], displacement [m], tilt rate [rad/s], velocity [m/s]) and on the
@@ -149,15 +150,15 @@ class OperatorSettings:
     def __post_init__(self) -> None:
         for name in ("loop_delay_steps", "reaction_delay_steps"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 1000:
+            if not is_integer(value) or not 0 <= value <= 1000:
                 raise InvalidParameterError("operator settings", name, value, "an integer in [0, 1000]")
         for name in ("command_noise_std", "trim_std", "setpoint_drift", "random_correction_rate_hz"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 10.0:
+            if not is_number(value) or not 0.0 <= value <= 10.0:
                 raise InvalidParameterError("operator settings", name, value, "a number in [0, 10]")
         for name in ("trim_time_constant_s", "notice_threshold"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value <= 100.0:
+            if not is_number(value) or not 0.0 < value <= 100.0:
                 raise InvalidParameterError("operator settings", name, value, "a number in (0, 100]")
 
 
