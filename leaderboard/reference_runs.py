@@ -33,6 +33,7 @@ from leaderboard.assemble import METRICS_FILE, read_evaluation_strict, read_lear
 from leaderboard.store import write_file_atomic
 from leaderboard.submission import SubmissionError
 from offdyn_bench.errors import OffdynError
+from offdyn_bench.json_values import is_integer
 from offdyn_bench.protocol.claims import NO_DATASET, dataset_label
 from offdyn_bench.sweep.runs import EVALUATION_FILE, SOURCE_EVALUATION_FILE, dataset_tag, seed_label
 
@@ -112,7 +113,7 @@ def check_reference_curve(path: Path, record: dict[str, Any]) -> list[dict[str, 
     steps that end at the record's training steps."""
     curve = read_learning_curve(path, len(record["seeds"]))
     steps = [point["step"] for point in curve]
-    if not curve or not all(isinstance(step, int) and not isinstance(step, bool) and step > 0 for step in steps):
+    if not curve or not all(is_integer(step) and step > 0 for step in steps):
         raise SubmissionError(f"{path}: {'no evaluation' if not curve else 'a step that is not a positive integer'}; "
                               "expected the metrics.jsonl `offdyn-bench train` wrote")
     for earlier, later in zip(steps, steps[1:]):
