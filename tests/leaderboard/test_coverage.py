@@ -60,14 +60,18 @@ def test_the_h2o_cell_counts_the_published_seeds_and_prices_the_missing_ones(tmp
     assert (costs["h2o"].seeds_to_go, costs["h2o"].trainings_to_go) == (5, 5)
     assert costs["cql"].seeds_to_go == 10 - len(published_cql)
     # Priced at the median of the method's own published one-seed CPU trainings on the robot
-    # (compute.json's training counts): CQL's one-seed ones are all HalfCheetah's, like this task.
+    # (compute.json's training counts; the seed-batched GPU runs are not priced): this task's are
+    # HalfCheetah's, and the method's count takes in those on every robot.
     compute = json.loads((REFERENCE_RUNS_DIR / "lite" / "compute.json").read_text())["runs"]
-    cql_times = sorted(entry["training"]["cpu_time_s"] for run_id, entry in compute.items()
-                       if run_id.startswith("cql/") and run_id.rpartition(".")[2].startswith("seed-")
-                       and entry.get("training", {}).get("complete"))
-    assert costs["cql"].trainings_counted == len(cql_times) >= 1
-    assert costs["cql"].cpu_to_go_s == pytest.approx(costs["cql"].trainings_to_go * costs["cql"].median_training_cpu_s)
-    assert min(cql_times) <= costs["cql"].median_training_cpu_s <= max(cql_times)
+    one_seed = {run_id: entry["training"]["cpu_time_s"] for run_id, entry in compute.items()
+                if run_id.startswith("cql/") and run_id.rpartition("/")[2].rpartition(".")[2].startswith("seed-")
+                and entry.get("training", {}).get("complete")}
+    cheetah_times = sorted(cpu for run_id, cpu in one_seed.items() if run_id.startswith("cql/halfcheetah"))
+    assert costs["cql"].trainings_counted == len(one_seed) >= len(cheetah_times) >= 1
+    (cheetah,) = costs["cql"].robots
+    assert (cheetah.robot, cheetah.trainings_counted) == ("HalfCheetah", len(cheetah_times))
+    assert min(cheetah_times) <= cheetah.median_training_cpu_s <= max(cheetah_times)
+    assert costs["cql"].cpu_to_go_s == pytest.approx(costs["cql"].trainings_to_go * cheetah.median_training_cpu_s)
     assert coverage.others == ()
 
     lines = coverage_lines(coverage)
