@@ -754,7 +754,7 @@ _PUBLISHED_CLAIMS = {
     # HalfCheetah's core gravity pair, five seeds each: H2O 832.7, 895.3, 793.8, 957.6, 472.9 against
     # DARC 3,094.8, 2,787.7, 2,712.1, 1,589.5, 3,600.3 (PROTOCOL §9); it read 832.7 against 3,094.8 on seed 0.
     ("h2o > darc", "halfcheetah-gravity-0.5", "source-policy"): ((5, 5), False, 790.4, 2756.9, 0.0),
-    # CQL's first seed there, trained on this machine's CPU: 1,692.1, above every H2O seed.
+    # CQL's two seeds there (this machine's CPU): 1,692.1 and 2,804.2, above every H2O seed.
     ("h2o > cql", "halfcheetah-gravity-0.5", "source-policy"): ((5, 2), False, 790.4, 2248.1, 0.0),
     # HalfCheetah under friction, five seeds each: H2O 765.2, 1,977.5, 1,377.3, 1,084.1, 1,471.3 against
     # DARC 658.3, 1,633.1, 1,229.0, 1,076.5, 1,046.5 (PROTOCOL §9); it read P 1.00 on seed 0 and 0.62 on four.
